@@ -1,0 +1,300 @@
+"""Frozen configuration dataclasses, loaded from YAML with `--set section.key=value` overrides.
+
+Every field carries its allowed range (or choices) in its metadata; `load_config`
+rejects unknown keys, wrong types and out-of-range values with one line naming the
+key. Defaults are the values of `../shared/spec/SPEC.md` (the paper's setting).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import math
+import typing
+from pathlib import Path
+from typing import Any, Sequence
+
+import yaml
+
+
+class ConfigError(ValueError):
+  """A config file or override is invalid; the message names the key."""
+
+
+def _f(default, lo=None, hi=None, choices=None, doc=""):
+  """A dataclass field with its allowed range [lo, hi] (inclusive) or its choices."""
+  return dataclasses.field(
+      default=default, metadata={"lo": lo, "hi": hi, "choices": choices, "doc": doc})
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldConfig:
+  """Procedural vineyards (SPEC section 2). Lengths in metres."""
+  inter_row_m: tuple[float, float] = _f((1.5, 2.0), 0.3, 10.0, doc="inter-row distance range")
+  spacing_m: tuple[float, float] = _f((0.7, 1.0), 0.2, 5.0, doc="in-row plant spacing range")
+  jitter_frac: float = _f(0.1, 0.0, 0.5, doc="plant position jitter, fraction of spacing (triangular)")
+  train_rows: int = _f(4, 2, 12, doc="plant rows in a train world (lanes = rows - 1)")
+  train_length_m: float = _f(20.0, 4.0, 60.0)
+  test_length_m: float = _f(24.0, 8.0, 60.0)
+  curve_amplitude_m: float = _f(0.7, 0.0, 2.0, doc="lateral wander of curved test rows")
+  trunk_radius_m: float = _f(0.04, 0.01, 0.2)
+  trunk_height_m: tuple[float, float] = _f((0.6, 0.8), 0.1, 2.0)
+  canopy_width_m: tuple[float, float] = _f((0.3, 0.5), 0.05, 2.0)
+  canopy_top_m: tuple[float, float] = _f((1.6, 1.9), 0.5, 4.0)
+  terrain_amplitude_m: float = _f(0.05, 0.0, 0.5, doc="terrain bumps are +- this")
+  terrain_bump_m: float = _f(1.0, 0.1, 10.0, doc="grid of the random bumps")
+  terrain_cell_m: float = _f(0.25, 0.05, 2.0, doc="heightfield resolution")
+  terrain_margin_m: float = _f(4.0, 0.5, 20.0, doc="terrain beyond the outer plants")
+  plant_slots: int = _f(256, 16, 4096, doc="plant slots per world, so that worlds batch")
+  train_seed: int = _f(0, 0, 2**31 - 1, doc="seed of the first train world of the pool")
+  pool_size: int = _f(8, 1, 4096, doc="train worlds in the pool")
+  test_seed: int = _f(0, 0, 2**31 - 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotConfig:
+  """Which robot (SPEC section 3) and its drive."""
+  name: str = _f("jackal", choices=("jackal", "husky"))
+  wheel_kv: float = _f(8.0, 0.01, 1000.0, doc="wheel velocity-servo gain, N m s / rad")
+  wheel_friction: float = _f(1.0, 0.05, 5.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraConfig:
+  """Depth camera (SPEC section 4)."""
+  width: int = _f(112, 1, 1024)
+  height: int = _f(112, 1, 1024)
+  fovx_deg: float = _f(60.0, 1.0, 170.0)
+  fovy_deg: float = _f(46.8, 1.0, 170.0)
+  max_depth_m: float = _f(5.0, 0.1, 100.0)
+  noise_factor: float = _f(1.0, 0.0, 100.0, doc="k in clip(d + k (n1 + n2), 0, max)")
+  noise_sigma_m: float = _f(0.2, 0.0, 5.0, doc="std of the depth-independent term n1")
+  noise_clip_m: float = _f(0.5, 0.0, 5.0, doc="each noise term is clipped to +- this")
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+  """Task, reward and termination (SPEC sections 4-5)."""
+  num_envs: int = _f(1, 1, 1 << 20)
+  control_dt: float = _f(0.1, 0.01, 1.0, doc="seconds per action")
+  physics_dt: float = _f(0.02, 0.001, 0.1, doc="MJX timestep; control_dt / physics_dt sub-steps")
+  max_steps: int = _f(700, 1, 100000, doc="episode limit T (a truncation)")
+  v_max: float = _f(0.5, 0.01, 5.0, doc="linear speed box [0, v_max] m/s")
+  w_max: float = _f(1.0, 0.01, 10.0, doc="angular speed box [-w_max, w_max] rad/s")
+  heading_weight: float = _f(0.6, 0.0, 1e3)
+  progress_weight: float = _f(35.0, 0.0, 1e4)
+  success_reward: float = _f(1000.0, -1e5, 1e5)
+  collision_reward: float = _f(-500.0, -1e5, 1e5)
+  reverse_reward: float = _f(-500.0, -1e5, 1e5)
+  yaw_limit_deg: float = _f(85.0, 1.0, 180.0)
+  success_radius_m: float = _f(0.4, 0.01, 5.0)
+  collision_margin_m: float = _f(0.05, 0.0, 1.0)
+  pose_reset_every: int = _f(10, 1, 100000, doc="episodes between new start poses")
+  start_yaw_jitter_deg: float = _f(10.0, 0.0, 90.0)
+  start_lateral_jitter_m: float = _f(0.1, 0.0, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class SACConfig:
+  """Soft Actor-Critic (SPEC section 6)."""
+  learning_rate: float = _f(2e-4, 1e-7, 1.0)
+  gamma: float = _f(0.99, 0.0, 1.0)
+  tau: float = _f(5e-3, 0.0, 1.0)
+  alpha: float = _f(0.2, 0.0, 100.0, doc="entropy temperature (initial value if auto_alpha)")
+  auto_alpha: bool = _f(False)
+  target_entropy: float = _f(-2.0, -100.0, 100.0)
+  batch_size: int = _f(128, 1, 1 << 16)
+  buffer_size: int = _f(100_000, 1, 1 << 26)
+  warmup_steps: int = _f(10_000, 0, 1 << 30, doc="uniformly random env steps before learning")
+  eps_start: float = _f(1.0, 0.0, 1.0)
+  eps_decay: float = _f(0.992, 0.0, 1.0, doc="epsilon multiplier per finished episode")
+  eps_min: float = _f(0.05, 0.0, 1.0)
+  hidden: int = _f(256, 1, 8192)
+  conv_features: int = _f(32, 1, 1024)
+  log_std_min: float = _f(-20.0, -100.0, 0.0)
+  log_std_max: float = _f(2.0, -10.0, 10.0)
+  grad_steps_per_iter: int = _f(1, 1, 1 << 16, doc="gradient steps per training iteration")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  seed: int = _f(0, 0, 2**31 - 1)
+  total_env_steps: int = _f(1_050_000, 1, 1 << 40)
+  iters_per_chunk: int = _f(100, 1, 1 << 20, doc="iterations per lax.scan between host logs")
+  checkpoint_every_chunks: int = _f(10, 1, 1 << 20)
+  save_replay: bool = _f(False)
+  num_seeds: int = _f(1, 1, 1024)
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+  runs: int = _f(5, 1, 1000, doc="runs per lane and direction")
+  noise_factor: float = _f(1.0, 0.0, 100.0)
+  runs_after_train: int = _f(1, 0, 1000)
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+  world: WorldConfig = WorldConfig()
+  robot: RobotConfig = RobotConfig()
+  camera: CameraConfig = CameraConfig()
+  env: EnvConfig = EnvConfig()
+  sac: SACConfig = SACConfig()
+  train: TrainConfig = TrainConfig()
+  eval: EvalConfig = EvalConfig()
+
+
+# Robot footprints (width, m), for the cross-field check that lanes fit the robot.
+ROBOT_WIDTH_M = {"jackal": 0.430, "husky": 0.670}
+
+
+def _coerce(key: str, value: Any, tp: Any, meta: dict) -> Any:
+  """Converts `value` (from YAML or a `--set` string) to `tp`, checking its range."""
+  origin = typing.get_origin(tp)
+  if origin is tuple:
+    if isinstance(value, str):
+      value = yaml.safe_load(value)
+    item_types = typing.get_args(tp)
+    if not isinstance(value, (list, tuple)) or len(value) != len(item_types):
+      raise ConfigError(f"{key} = {value!r}: expected a list of {len(item_types)} numbers")
+    out = tuple(_coerce(key, v, t, meta) for v, t in zip(value, item_types))
+    if any(a > b for a, b in zip(out, out[1:])):
+      raise ConfigError(f"{key} = {list(out)}: the range must be increasing [min, max]")
+    return out
+  if isinstance(value, str) and tp is not str:
+    value = yaml.safe_load(value)
+  if tp is bool:
+    if not isinstance(value, bool):
+      raise ConfigError(f"{key} = {value!r}: expected true or false")
+    return value
+  if tp is int:
+    if isinstance(value, bool) or not (isinstance(value, int) or
+                                       (isinstance(value, float) and value.is_integer())):
+      raise ConfigError(f"{key} = {value!r}: expected an integer")
+    value = int(value)
+  elif tp is float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+      raise ConfigError(f"{key} = {value!r}: expected a number")
+    value = float(value)
+    if not math.isfinite(value):
+      raise ConfigError(f"{key} = {value!r}: expected a finite number")
+  elif tp is str:
+    value = str(value)
+  lo, hi, choices = meta.get("lo"), meta.get("hi"), meta.get("choices")
+  if choices is not None and value not in choices:
+    raise ConfigError(f"{key} = {value!r}: must be one of {', '.join(choices)}")
+  if lo is not None and not (lo <= value <= hi):
+    raise ConfigError(f"{key} = {value!r}: must be in [{lo}, {hi}]")
+  return value
+
+
+def _build(cls, data: dict, prefix: str):
+  if not isinstance(data, dict):
+    raise ConfigError(f"{prefix or 'config'}: expected a mapping, got {data!r}")
+  hints = typing.get_type_hints(cls)
+  names = {f.name: f for f in dataclasses.fields(cls)}
+  for key in data:
+    if key not in names:
+      raise ConfigError(f"{prefix}{key}: unknown key (known: {', '.join(names)})")
+  kwargs = {}
+  for name, field in names.items():
+    tp, key = hints[name], prefix + name
+    if dataclasses.is_dataclass(tp):
+      kwargs[name] = _build(tp, data.get(name, {}) or {}, key + ".")
+    elif name in data:
+      kwargs[name] = _coerce(key, data[name], tp, dict(field.metadata))
+  return cls(**kwargs)
+
+
+def _check_cross_fields(cfg: Config) -> None:
+  width = ROBOT_WIDTH_M[cfg.robot.name]
+  lo = cfg.world.inter_row_m[0]
+  if lo - cfg.world.canopy_width_m[1] <= width:
+    raise ConfigError(
+        f"world.inter_row_m = {list(cfg.world.inter_row_m)}: the lane (inter-row distance "
+        f"minus canopy width {cfg.world.canopy_width_m[1]}) must be wider than the "
+        f"{cfg.robot.name} ({width} m); must be > {width + cfg.world.canopy_width_m[1]:.3f}")
+  if cfg.world.trunk_height_m[1] >= cfg.world.canopy_top_m[0]:
+    raise ConfigError(f"world.trunk_height_m = {list(cfg.world.trunk_height_m)}: "
+                      f"must stay below world.canopy_top_m {list(cfg.world.canopy_top_m)}")
+  steps = cfg.env.control_dt / cfg.env.physics_dt
+  if abs(steps - round(steps)) > 1e-6:
+    raise ConfigError(f"env.physics_dt = {cfg.env.physics_dt}: must divide env.control_dt "
+                      f"= {cfg.env.control_dt}")
+  if cfg.sac.log_std_min >= cfg.sac.log_std_max:
+    raise ConfigError(f"sac.log_std_min = {cfg.sac.log_std_min}: must be < sac.log_std_max")
+
+
+def _set_nested(data: dict, dotted: str, value: str) -> None:
+  parts = dotted.split(".")
+  node = data
+  for p in parts[:-1]:
+    node = node.setdefault(p, {})
+    if not isinstance(node, dict):
+      raise ConfigError(f"{dotted}: {p} is not a section")
+  node[parts[-1]] = value
+
+
+def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Config:
+  """Loads a config: defaults <- YAML file at `path` <- `overrides` ("section.key=value")."""
+  data: dict = {}
+  if path is not None:
+    path = Path(path)
+    if not path.is_file():
+      raise ConfigError(f"config file not found: {path}")
+    try:
+      data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+      raise ConfigError(f"{path}: not valid YAML ({e})") from None
+  for item in overrides:
+    if "=" not in item:
+      raise ConfigError(f"--set {item!r}: expected section.key=value")
+    key, value = item.split("=", 1)
+    _set_nested(data, key.strip(), value.strip())
+  cfg = _build(Config, data, "")
+  _check_cross_fields(cfg)
+  return cfg
+
+
+def to_dict(cfg) -> dict:
+  """A plain dict of a config (tuples as lists), for YAML/JSON."""
+  return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
+def to_yaml(cfg) -> str:
+  return yaml.safe_dump(to_dict(cfg), sort_keys=False)
+
+
+def config_hash(cfg) -> str:
+  """A short stable hash of a config, to tie exported policies to their run."""
+  return hashlib.sha256(json.dumps(to_dict(cfg), sort_keys=True).encode()).hexdigest()[:12]
+
+
+def add_config_args(parser: argparse.ArgumentParser, default: str | None = None) -> None:
+  """Adds `--config FILE` and repeatable `--set section.key=value` to a CLI."""
+  parser.add_argument("--config", default=default, help="YAML config file")
+  parser.add_argument("--set", dest="overrides", action="append", default=[],
+                      metavar="SECTION.KEY=VALUE", help="override a config value (repeatable)")
+
+
+def config_from_args(args: argparse.Namespace, extra: Sequence[str] = ()) -> Config:
+  """Loads the config named by `add_config_args`, exiting with one line on error."""
+  try:
+    return load_config(args.config, [*extra, *args.overrides])
+  except ConfigError as e:
+    raise SystemExit(f"config error: {e}") from None
+
+
+def replace(cfg: Config, **sections: dict) -> Config:
+  """Returns `cfg` with fields of sections replaced, e.g. replace(cfg, env={"num_envs": 4})."""
+  return dataclasses.replace(
+      cfg, **{s: dataclasses.replace(getattr(cfg, s), **kv) for s, kv in sections.items()})
+
+
+__all__ = [
+    "Config", "ConfigError", "WorldConfig", "RobotConfig", "CameraConfig", "EnvConfig",
+    "SACConfig", "TrainConfig", "EvalConfig", "load_config", "to_dict", "to_yaml",
+    "config_hash", "add_config_args", "config_from_args", "replace", "ROBOT_WIDTH_M",
+]
