@@ -1,0 +1,202 @@
+"""Actor and twin-critic networks of SAC (SPEC section 6), and the squashed Gaussian.
+
+Observations are either
+  * a dict `{"depth": (..., H, W, 1) float32 metres, "state": (..., S) float32}`: the
+    depth image goes through a conv tower (32 features) that is concatenated with the
+    state vector, or
+  * a flat vector `(..., D)` float32 (any brax `Env`): fed to the MLP torso directly.
+
+Actions live in a box `[low, high]` (vineyard: v in [0, 0.5] m/s, w in [-1, 1] rad/s):
+the actor outputs a Gaussian over pre-squash values `u`, and `a = low + (tanh(u) + 1) / 2
+* (high - low)`.
+
+With a 112x112 depth image and a 3-dim state the actor has exactly 104,100 parameters
+and each critic 103,841 (ReLU after every conv; the mean and log-std heads are two
+separate Dense(2) layers on the last hidden layer).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple, Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+Obs = Any  # a dict {"depth", "state"} or a flat vector, with leading batch dims
+
+# Layers of the conv tower: (stride, max-pool 2x2 after it), 3x3 kernels, VALID padding.
+CONV_LAYERS = ((2, False), (1, True), (2, False), (1, False))
+
+
+class ConvTower(nn.Module):
+  """Depth encoder: 4 conv 3x3 (strides 2, 1, [maxpool 2], 2, 1), ReLU, global avg pool.
+
+  Input (..., H, W, C) float32; output (..., features). For 112x112 the spatial sizes
+  are 112 -> 55 -> 53 -> 26 -> 12 -> 10.
+  """
+  features: int = 32
+  depth_scale: float = 1.0  # the input is multiplied by this (e.g. 1 / max_depth)
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    batch_shape = x.shape[:-3]
+    x = x.reshape((-1,) + x.shape[-3:]) * self.depth_scale
+    for i, (stride, pool) in enumerate(CONV_LAYERS):
+      x = nn.Conv(self.features, (3, 3), (stride, stride), padding="VALID", name=f"conv{i}")(x)
+      x = nn.relu(x)
+      if pool:
+        x = nn.max_pool(x, (2, 2), strides=(2, 2), padding="VALID")
+    x = jnp.mean(x, axis=(-3, -2))
+    return x.reshape(batch_shape + (self.features,))
+
+
+def _torso_input(obs: Obs, features: int, depth_scale: float, extra=()) -> jax.Array:
+  """Concatenates [tower(depth), state, *extra] (dict obs) or [obs, *extra] (vector)."""
+  if isinstance(obs, dict):
+    feats = ConvTower(features, depth_scale, name="tower")(obs["depth"])
+    parts = [feats, obs["state"]]
+  else:
+    parts = [obs]
+  return jnp.concatenate(parts + list(extra), axis=-1)
+
+
+class Actor(nn.Module):
+  """Gaussian policy head over pre-squash actions.
+
+  `__call__(obs) -> (mean, log_std)`, both (..., action_size); log_std is clipped to
+  [log_std_min, log_std_max].
+  """
+  action_size: int
+  hidden: Sequence[int] = (256, 256)
+  conv_features: int = 32
+  depth_scale: float = 1.0
+  log_std_min: float = -20.0
+  log_std_max: float = 2.0
+
+  @nn.compact
+  def __call__(self, obs: Obs) -> tuple[jax.Array, jax.Array]:
+    x = _torso_input(obs, self.conv_features, self.depth_scale)
+    for i, h in enumerate(self.hidden):
+      x = nn.relu(nn.Dense(h, name=f"dense{i}")(x))
+    mean = nn.Dense(self.action_size, name="mean")(x)
+    log_std = nn.Dense(self.action_size, name="log_std")(x)
+    return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
+
+
+class Critic(nn.Module):
+  """One Q network: `__call__(obs, action (..., A)) -> q (...,)`, with its own tower."""
+  hidden: Sequence[int] = (256, 256)
+  conv_features: int = 32
+  depth_scale: float = 1.0
+
+  @nn.compact
+  def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
+    x = _torso_input(obs, self.conv_features, self.depth_scale, extra=(action,))
+    for i, h in enumerate(self.hidden):
+      x = nn.relu(nn.Dense(h, name=f"dense{i}")(x))
+    return nn.Dense(1, name="q")(x)[..., 0]
+
+
+class TwinCritic(nn.Module):
+  """`num` independent critics with params stacked on a leading axis.
+
+  `__call__(obs, action) -> q (num, ...)`.
+  """
+  hidden: Sequence[int] = (256, 256)
+  conv_features: int = 32
+  depth_scale: float = 1.0
+  num: int = 2
+
+  @nn.compact
+  def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
+    vmapped = nn.vmap(
+        Critic, variable_axes={"params": 0}, split_rngs={"params": True},
+        in_axes=None, out_axes=0, axis_size=self.num)
+    return vmapped(self.hidden, self.conv_features, self.depth_scale, name="critics")(obs, action)
+
+
+class SACNetworks(NamedTuple):
+  """The static parts of the agent: modules and the action box (each (A,) float32)."""
+  actor: Actor
+  critic: TwinCritic
+  action_low: jax.Array
+  action_high: jax.Array
+
+
+def make_networks(action_low: Sequence[float], action_high: Sequence[float], hidden: int = 256,
+                  num_hidden: int = 2, conv_features: int = 32, depth_scale: float = 1.0,
+                  log_std_min: float = -20.0, log_std_max: float = 2.0) -> SACNetworks:
+  """Builds the actor and twin critic for an action box [action_low, action_high].
+
+  `depth_scale` multiplies the depth (metres) before the first conv; the SPEC
+  networks are `hidden=256, num_hidden=2, conv_features=32`.
+  """
+  low = jnp.asarray(action_low, jnp.float32)
+  high = jnp.asarray(action_high, jnp.float32)
+  if low.shape != high.shape or low.ndim != 1 or not bool(jnp.all(high > low)):
+    raise ValueError(f"bad action box: low={action_low}, high={action_high}")
+  hs = (hidden,) * num_hidden
+  actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, log_std_min, log_std_max)
+  critic = TwinCritic(hs, conv_features, depth_scale)
+  return SACNetworks(actor, critic, low, high)
+
+
+def init_params(nets: SACNetworks, key: jax.Array, obs: Obs) -> tuple[Any, Any]:
+  """Initialises (actor_params, critic_params) from an example observation (any batch)."""
+  k1, k2 = jax.random.split(key)
+  act = jnp.zeros(jax.tree.leaves(obs)[0].shape[:_batch_ndim(obs)] + nets.action_low.shape)
+  return nets.actor.init(k1, obs)["params"], nets.critic.init(k2, obs, act)["params"]
+
+
+def _batch_ndim(obs: Obs) -> int:
+  """Number of leading batch dims of an observation (depth has 3 trailing dims)."""
+  if isinstance(obs, dict):
+    return obs["state"].ndim - 1
+  return obs.ndim - 1
+
+
+def num_params(params: Any) -> int:
+  """Total number of scalars in a params pytree."""
+  return sum(int(math.prod(x.shape)) for x in jax.tree.leaves(params))
+
+
+# ----------------------------------------------------------------------------------------
+# Tanh-squashed Gaussian mapped onto the action box.
+
+
+def squash(u: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
+  """Maps pre-squash u (..., A) into the box: low + (tanh(u) + 1) / 2 * (high - low)."""
+  return low + 0.5 * (jnp.tanh(u) + 1.0) * (high - low)
+
+
+def _log_det_squash(u: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
+  """log |d squash / du| summed over the action dims: (..., A) -> (...)."""
+  # log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)), stable for large |u|.
+  log_dtanh = 2.0 * (math.log(2.0) - u - jax.nn.softplus(-2.0 * u))
+  return jnp.sum(log_dtanh + jnp.log(0.5 * (high - low)), axis=-1)
+
+
+def gaussian_log_prob(u: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
+  """log N(u; mean, exp(log_std)^2) of a diagonal Gaussian, summed over the last axis."""
+  z = (u - mean) * jnp.exp(-log_std)
+  return jnp.sum(-0.5 * z * z - log_std - 0.5 * math.log(2.0 * math.pi), axis=-1)
+
+
+def squashed_log_prob(u: jax.Array, mean: jax.Array, log_std: jax.Array, low: jax.Array,
+                      high: jax.Array) -> jax.Array:
+  """Log-density (w.r.t. the action box) of `squash(u)`, u drawn from N(mean, std): (...)."""
+  return gaussian_log_prob(u, mean, log_std) - _log_det_squash(u, low, high)
+
+
+def sample_squashed(key: jax.Array, mean: jax.Array, log_std: jax.Array, low: jax.Array,
+                    high: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """Reparameterised sample. Returns (action (..., A) in the box, log_prob (...))."""
+  u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
+  return squash(u, low, high), squashed_log_prob(u, mean, log_std, low, high)
+
+
+def deterministic_action(mean: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
+  """The test-time action: the squashed, box-mapped mean (..., A)."""
+  return squash(mean, low, high)

@@ -1,0 +1,128 @@
+"""Networks: exact SPEC parameter counts, shapes, and the squashed Gaussian density."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjxvine import networks as nw
+
+LOW, HIGH = np.array([0.0, -1.0], np.float32), np.array([0.5, 1.0], np.float32)
+
+
+@pytest.fixture(scope="session")
+def spec_nets():
+  return nw.make_networks(LOW, HIGH)
+
+
+def _vine_obs(batch=(1,), size=112):
+  return {"depth": jnp.zeros(batch + (size, size, 1)), "state": jnp.zeros(batch + (3,))}
+
+
+def test_spec_parameter_counts(spec_nets):
+  actor, critic = jax.eval_shape(lambda k: nw.init_params(spec_nets, k, _vine_obs()),
+                                 jax.random.PRNGKey(0))
+  assert nw.num_params(actor) == 104_100
+  # Twin critics: two independent critics stacked on axis 0, each 103,841 parameters.
+  assert all(x.shape[0] == 2 for x in jax.tree.leaves(critic))
+  one = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), critic)
+  assert nw.num_params(one) == 103_841
+  assert nw.num_params(critic) == 2 * 103_841
+  tower = one["critics"]["tower"]
+  assert [tower[f"conv{i}"]["kernel"].shape for i in range(4)] == [
+      (3, 3, 1, 32), (3, 3, 32, 32), (3, 3, 32, 32), (3, 3, 32, 32)]
+
+
+def test_tower_spatial_sizes():
+  """112 -> 55 -> 53 -> (pool) 26 -> 12 -> 10, VALID padding; 32 pooled features."""
+  tower = nw.ConvTower(32)
+  x = jnp.zeros((1, 112, 112, 1))
+  _, state = jax.eval_shape(
+      lambda k: tower.init_with_output(k, x, capture_intermediates=True),
+      jax.random.PRNGKey(0))
+  inter = state["intermediates"]
+  sizes = [inter[f"conv{i}"]["__call__"][0].shape[1] for i in range(4)]
+  assert sizes == [55, 53, 12, 10]
+  assert inter["__call__"][0].shape == (1, 32)
+
+
+def test_actor_critic_shapes_and_batch_dims(spec_nets):
+  obs = _vine_obs((2, 3), 32)  # the tower works on any image size and batch dims
+
+  @jax.jit
+  def run(key):
+    a_params, c_params = nw.init_params(spec_nets, key, obs)
+    mean, log_std = spec_nets.actor.apply({"params": a_params}, obs)
+    q = spec_nets.critic.apply({"params": c_params}, obs, jnp.zeros((2, 3, 2)))
+    return c_params, mean, log_std, q
+
+  c_params, mean, log_std, q = run(jax.random.PRNGKey(0))
+  assert mean.shape == log_std.shape == (2, 3, 2)
+  assert q.shape == (2, 2, 3)
+  # The two critics are independent (different initial parameters).
+  c0 = c_params["critics"]["dense0"]["kernel"]
+  assert not np.allclose(c0[0], c0[1])
+
+
+def test_vector_observation_mlp():
+  nets = nw.make_networks([-1.0], [1.0], hidden=16)
+  obs = jnp.ones((5, 4))
+  a_params, _ = jax.eval_shape(lambda k: nw.init_params(nets, k, obs), jax.random.PRNGKey(1))
+  assert "tower" not in a_params
+  mean, _ = jax.eval_shape(lambda p: nets.actor.apply({"params": p}, obs), a_params)
+  assert mean.shape == (5, 1)
+  # 4 -> 16 -> 16 -> 1 (+1 log-std head)
+  assert nw.num_params(a_params) == (4 * 16 + 16) + (16 * 16 + 16) + 2 * (16 + 1)
+
+
+def test_log_std_clipped():
+  nets = nw.make_networks([-1.0], [1.0], hidden=4, log_std_min=-0.1, log_std_max=0.1)
+  obs = jax.random.normal(jax.random.PRNGKey(0), (64, 3)) * 100.0
+  init_apply = lambda k: nets.actor.apply(nets.actor.init(k, obs), obs)
+  _, log_std = jax.jit(init_apply)(jax.random.PRNGKey(0))
+  assert log_std.min() >= np.float32(-0.1) and log_std.max() <= np.float32(0.1)
+  assert float(log_std.max() - log_std.min()) > 0.1  # really clipped on both sides
+
+
+def test_squashed_log_prob_change_of_variables():
+  """log p(a) = log N(u) - log|det da/du|, checked against a finite-difference Jacobian."""
+  rng = np.random.default_rng(0)
+  low, high = jnp.asarray(LOW), jnp.asarray(HIGH)
+  mean = jnp.asarray(rng.normal(size=(50, 2)), jnp.float32)
+  log_std = jnp.asarray(rng.uniform(-1.5, 0.5, size=(50, 2)), jnp.float32)
+  a, logp = nw.sample_squashed(jax.random.PRNGKey(3), mean, log_std, low, high)
+  assert np.all(np.asarray(a) >= LOW) and np.all(np.asarray(a) <= HIGH)
+  # Numerical check in float64: invert the map, differentiate it numerically.
+  a64, m64, s64 = (np.asarray(x, np.float64) for x in (a, mean, jnp.exp(log_std)))
+  lo, hi = LOW.astype(np.float64), HIGH.astype(np.float64)
+  u = np.arctanh(2.0 * (a64 - lo) / (hi - lo) - 1.0)
+  f = lambda v: lo + 0.5 * (np.tanh(v) + 1.0) * (hi - lo)
+  h = 1e-6
+  jac = (f(u + h) - f(u - h)) / (2 * h)  # the map is diagonal
+  log_nu = np.sum(-0.5 * ((u - m64) / s64) ** 2 - np.log(s64) - 0.5 * np.log(2 * np.pi), -1)
+  expected = log_nu - np.sum(np.log(jac), -1)
+  np.testing.assert_allclose(np.asarray(logp), expected, rtol=1e-3, atol=2e-3)
+
+
+def test_squashed_density_integrates_to_one():
+  """Over a 1-D box the density of the squashed sample integrates to 1."""
+  low, high = jnp.array([-2.0]), jnp.array([3.0])
+  a = np.linspace(-2.0, 3.0, 200_001)[1:-1]
+  u = np.arctanh(2.0 * (a + 2.0) / 5.0 - 1.0)
+  logp = nw.squashed_log_prob(jnp.asarray(u[:, None], jnp.float32), jnp.array([0.3]),
+                              jnp.array([-0.2]), low, high)
+  total = np.trapezoid(np.exp(np.asarray(logp, np.float64)), a)
+  assert abs(total - 1.0) < 1e-3
+
+
+def test_deterministic_action_maps_mean_into_box():
+  low, high = jnp.asarray(LOW), jnp.asarray(HIGH)
+  act = nw.deterministic_action(jnp.array([[0.0, 0.0], [50.0, -50.0]]), low, high)
+  np.testing.assert_allclose(np.asarray(act), [[0.25, 0.0], [0.5, -1.0]], atol=1e-6)
+
+
+def test_log_prob_stable_for_saturated_tanh():
+  u = jnp.array([[30.0, -30.0]])
+  lp = nw.squashed_log_prob(u, jnp.zeros((1, 2)), jnp.zeros((1, 2)), jnp.asarray(LOW),
+                            jnp.asarray(HIGH))
+  assert np.isfinite(np.asarray(lp)).all()
