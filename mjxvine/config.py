@@ -47,7 +47,7 @@ class WorldConfig:
   terrain_bump_m: float = _f(1.0, 0.1, 10.0, doc="grid of the random bumps")
   terrain_cell_m: float = _f(0.25, 0.05, 2.0, doc="heightfield resolution")
   terrain_margin_m: float = _f(4.0, 0.5, 20.0, doc="terrain beyond the outer plants")
-  plant_slots: int = _f(256, 16, 4096, doc="plant slots per world, so that worlds batch")
+  plant_slots: int = _f(0, 0, 4096, doc="plant slots per world (0: as many as the batch needs)")
   train_seed: int = _f(0, 0, 2**31 - 1, doc="seed of the first train world of the pool")
   pool_size: int = _f(8, 1, 4096, doc="train worlds in the pool")
   test_seed: int = _f(0, 0, 2**31 - 1)
@@ -57,8 +57,9 @@ class WorldConfig:
 class RobotConfig:
   """Which robot (SPEC section 3) and its drive."""
   name: str = _f("jackal", choices=("jackal", "husky"))
-  wheel_kv: float = _f(8.0, 0.01, 1000.0, doc="wheel velocity-servo gain, N m s / rad")
-  wheel_friction: float = _f(1.0, 0.05, 5.0)
+  wheel_kv: float = _f(1.0, 0.001, 100.0, doc="wheel velocity-servo gain per kg of robot, N m s / rad / kg")
+  wheel_armature: float = _f(0.005, 0.0, 1.0, doc="wheel motor armature per kg of robot, kg m^2 / kg")
+  wheel_friction: float = _f(0.8, 0.05, 5.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,7 +193,7 @@ def _coerce(key: str, value: Any, tp: Any, meta: dict) -> Any:
 
 def _build(cls, data: dict, prefix: str):
   if not isinstance(data, dict):
-    raise ConfigError(f"{prefix or 'config'}: expected a mapping, got {data!r}")
+    raise ConfigError(f"{prefix.rstrip('.') or 'config'}: expected a mapping, got {data!r}")
   hints = typing.get_type_hints(cls)
   names = {f.name: f for f in dataclasses.fields(cls)}
   for key in data:
@@ -247,7 +248,7 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
     try:
       data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as e:
-      raise ConfigError(f"{path}: not valid YAML ({e})") from None
+      raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None
   for item in overrides:
     if "=" not in item:
       raise ConfigError(f"--set {item!r}: expected section.key=value")

@@ -1,0 +1,66 @@
+"""Batches worlds of the same structure into one `mjx.Model` with per-world fields.
+
+As in MuJoCo Playground's domain randomisation: the fields that differ between the worlds
+(plant geom positions, sizes and orientations, heightfield data, ...) get a leading batch
+axis, the rest are shared, and `in_axes` says which is which, so that
+`jax.vmap(mjx.step, in_axes=(in_axes, 0))(batched_model, data)` steps N vineyards at once.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import jax
+import jax.numpy as jp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+
+def batch_models(models: Sequence[mujoco.MjModel]) -> tuple[mjx.Model, mjx.Model]:
+  """Returns (batched mjx.Model, in_axes) for MjModels of identical structure.
+
+  A leaf that differs between the models is stacked along a new axis 0 (in_axes 0);
+  a leaf equal in all of them is kept once (in_axes None).
+  """
+  if not models:
+    raise ValueError("batch_models needs at least one model")
+  puts = _unify_static([mjx.put_model(m) for m in models])
+  flat = [jax.tree_util.tree_flatten(p) for p in puts]
+  treedef = flat[0][1]
+  for i, (_, td) in enumerate(flat[1:], 1):
+    if td != treedef:
+      raise ValueError(f"model {i} has another structure than model 0 (plant slots, robot?)")
+  leaves, axes = [], []
+  for group in zip(*(f[0] for f in flat)):
+    shapes = {np.shape(x) for x in group}
+    if len(shapes) != 1:
+      raise ValueError(f"models differ in an array's shape {shapes}: not batchable")
+    first = np.asarray(group[0])
+    if all(np.array_equal(first, np.asarray(x)) for x in group[1:]):
+      leaves.append(group[0])
+      axes.append(None)
+    else:
+      leaves.append(jp.stack([jp.asarray(x) for x in group]))
+      axes.append(0)
+  return treedef.unflatten(leaves), treedef.unflatten(axes)
+
+
+# Static (numpy, non-traced) MJX fields that may differ between worlds, and how to unify
+# them: a per-geom bounding radius that sizes heightfield collision grids takes the max.
+_UNIFY_STATIC = {"geom_rbound_hfield": lambda xs: np.max(np.stack(xs), axis=0)}
+
+
+def _unify_static(puts: list[mjx.Model]) -> list[mjx.Model]:
+  impls = [p._impl for p in puts]
+  changes = {}
+  for name, unify in _UNIFY_STATIC.items():
+    if hasattr(impls[0], name):
+      changes[name] = unify([np.asarray(getattr(i, name)) for i in impls])
+  return [p.replace(_impl=p._impl.replace(**changes)) for p in puts]
+
+
+def take_world(model: mjx.Model, in_axes: mjx.Model, index) -> mjx.Model:
+  """The single-world mjx.Model number `index` of a batched model."""
+  return jax.tree.map(lambda x, a: x if a is None else x[index], model, in_axes,
+                      is_leaf=lambda x: x is None)

@@ -1,0 +1,144 @@
+"""MuJoCo models of vineyards, built with `mujoco.MjSpec`.
+
+Scene geoms: the heightfield `terrain` (group 0) and, for every plant slot i, a cylinder
+`plant{i}_trunk` and an ellipsoid `plant{i}_canopy` (group 1, contype = conaffinity = 0).
+Unused slots stay in the model, parked below the terrain at (0, 0, -100), so that all worlds
+of a config have the same structure and batch into one `mjx.Model`. The robot (group 2) and
+its camera `depth` come from `robots.add_robot`.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import mujoco
+import numpy as np
+
+from mjxvine.config import Config
+from mjxvine.worlds.layout import Vineyard
+from mjxvine.worlds.robots import ROBOTS, add_robot
+
+PARKED_Z = -100.0
+TERRAIN_BASE_M = 0.2  # heightfield base depth under its lowest point
+SOLVER_ITERATIONS = 4
+SOLVER_LS_ITERATIONS = 8
+
+
+def _yaw_quat(yaw: float) -> list[float]:
+  return [float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2))]
+
+
+def terrain_height(world: Vineyard, x, y):
+  """Terrain height (m) at (x, y), bilinear in the heightfield cells (numpy)."""
+  xmin, xmax, ymin, ymax = world.terrain_extent
+  nrow, ncol = world.terrain.shape
+  u = np.clip((np.asarray(x) - xmin) / (xmax - xmin) * (ncol - 1), 0, ncol - 1.000001)
+  v = np.clip((np.asarray(y) - ymin) / (ymax - ymin) * (nrow - 1), 0, nrow - 1.000001)
+  j, i = np.floor(u).astype(int), np.floor(v).astype(int)
+  fu, fv = u - j, v - i
+  t = world.terrain
+  return (t[i, j] * (1 - fu) * (1 - fv) + t[i, j + 1] * fu * (1 - fv) +
+          t[i + 1, j] * (1 - fu) * fv + t[i + 1, j + 1] * fu * fv)
+
+
+SLOT_MULTIPLE = 16
+
+
+def plant_slots_for(worlds: Sequence[Vineyard], cfg: Config) -> int:
+  """Plant slots that fit every world of `worlds`: `world.plant_slots` if set, else the
+  largest plant count rounded up to a multiple of 16 (fewer geoms make MJX faster)."""
+  need = max(len(w.plant_xy) for w in worlds)
+  if cfg.world.plant_slots:
+    if need > cfg.world.plant_slots:
+      raise ValueError(f"world.plant_slots = {cfg.world.plant_slots}: a world has {need} "
+                       "plants; raise it or set 0 (automatic)")
+    return cfg.world.plant_slots
+  return -(-need // SLOT_MULTIPLE) * SLOT_MULTIPLE
+
+
+def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None) -> mujoco.MjSpec:
+  """The MjSpec of `world` with the robot of `cfg.robot` at the start of lane 1, forward.
+
+  `plant_slots` (default: `plant_slots_for([world], cfg)`) fixes the number of plant geom
+  pairs, so that worlds built with the same value batch together.
+  """
+  spec = mujoco.MjSpec()
+  spec.modelname = f"vineyard_{cfg.robot.name}"  # the same for all worlds: names are static
+  spec.option.timestep = cfg.env.physics_dt
+  spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+  spec.option.iterations = SOLVER_ITERATIONS
+  spec.option.ls_iterations = SOLVER_LS_ITERATIONS
+  spec.stat.extent = 10.0
+  spec.visual.map.zfar = 200.0
+
+  spec.add_texture(name="grid", type=mujoco.mjtTexture.mjTEXTURE_2D,
+                   builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER, width=256, height=256,
+                   rgb1=[0.45, 0.38, 0.28], rgb2=[0.40, 0.34, 0.25])
+  mat = spec.add_material(name="soil", texrepeat=[20, 20])
+  mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "grid"
+  spec.worldbody.add_light(name="sun", pos=[0, 0, 30], dir=[0.2, 0.2, -1],
+                           type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+
+  # Terrain: MuJoCo mixes friction by max, so the wheels' friction decides. Heights span exactly [-amp, amp] (layout pins them), so MuJoCo's [0, 1]
+  # rescaling of the data is exact and the same for every world.
+  xmin, xmax, ymin, ymax = world.terrain_extent
+  amp = max(cfg.world.terrain_amplitude_m, 1e-4)
+  nrow, ncol = world.terrain.shape
+  hfield = spec.add_hfield(name="terrain", nrow=nrow, ncol=ncol,
+                           size=[(xmax - xmin) / 2, (ymax - ymin) / 2, 2 * amp, TERRAIN_BASE_M])
+  hfield.userdata = ((world.terrain + amp) / (2 * amp)).ravel().tolist()
+  spec.worldbody.add_geom(name="terrain", type=mujoco.mjtGeom.mjGEOM_HFIELD,
+                          hfieldname="terrain", pos=[(xmin + xmax) / 2, (ymin + ymax) / 2, -amp],
+                          group=0, material="soil", friction=[0.1, 0.005, 0.0001])
+
+  n = len(world.plant_xy)
+  slots = plant_slots_for([world], cfg) if plant_slots is None else plant_slots
+  if n > slots:
+    raise ValueError(f"plant_slots = {slots}: the world has {n} plants")
+  ground = terrain_height(world, world.plant_xy[:, 0], world.plant_xy[:, 1])
+  for i in range(slots):
+    if i < n:
+      x, y = world.plant_xy[i]
+      h, z0 = world.trunk_height[i], ground[i]
+      trunk_pos, canopy_pos = [x, y, z0 + h / 2], [x, y, z0 + world.canopy_z[i]]
+      trunk_size, canopy_size = [world.trunk_radius, h / 2, 0], world.canopy_half[i].tolist()
+      quat = _yaw_quat(world.plant_yaw[i])
+    else:
+      trunk_pos = canopy_pos = [0, 0, PARKED_Z]
+      # A non-identity quat: MJX keeps a static per-geom "same frame" flag, and it must
+      # not depend on which slots are in use.
+      trunk_size, canopy_size, quat = [0.04, 0.35, 0], [0.2, 0.2, 0.4], _yaw_quat(1.0)
+    common = dict(group=1, contype=0, conaffinity=0, quat=quat)
+    spec.worldbody.add_geom(name=f"plant{i}_trunk", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                            pos=trunk_pos, size=trunk_size, rgba=[0.35, 0.22, 0.1, 1], **common)
+    spec.worldbody.add_geom(name=f"plant{i}_canopy", type=mujoco.mjtGeom.mjGEOM_ELLIPSOID,
+                            pos=canopy_pos, size=canopy_size, rgba=[0.2, 0.5, 0.15, 1], **common)
+
+  robot = ROBOTS[cfg.robot.name]
+  max_wheel = 1.5 * (cfg.env.v_max + cfg.env.w_max * robot.track_slip * robot.track / 2) / robot.wheel_radius
+  add_robot(spec, robot, kv=cfg.robot.wheel_kv * robot.mass, friction=cfg.robot.wheel_friction,
+            armature=cfg.robot.wheel_armature * robot.mass,
+            fovy_deg=cfg.camera.fovy_deg, max_wheel_speed=max_wheel)
+  start = world.lanes[0].centerline[2]
+  chassis = spec.body("chassis")
+  chassis.pos = [start[0], start[1],
+                 float(terrain_height(world, start[0], start[1])) + robot.wheel_radius + 0.01]
+  return spec
+
+
+def build_model(world: Vineyard, cfg: Config, plant_slots: int | None = None) -> mujoco.MjModel:
+  """Compiles the MuJoCo model of `world` with the robot and camera of `cfg`."""
+  return build_spec(world, cfg, plant_slots).compile()
+
+
+def build_models(worlds: Sequence[Vineyard], cfg: Config) -> list[mujoco.MjModel]:
+  """Models of `worlds` with a common number of plant slots, ready for `batch_models`."""
+  slots = plant_slots_for(worlds, cfg)
+  return [build_model(w, cfg, slots) for w in worlds]
+
+
+def plant_geom_ids(model: mujoco.MjModel, slots: int) -> tuple[np.ndarray, np.ndarray]:
+  """Geom ids (slots,) of the plant trunks and canopies, in slot order."""
+  ids = [[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"plant{i}_{part}")
+          for i in range(slots)] for part in ("trunk", "canopy")]
+  return np.asarray(ids[0]), np.asarray(ids[1])

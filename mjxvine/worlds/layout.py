@@ -1,0 +1,258 @@
+"""Procedural vineyard layouts (SPEC section 2): plant rows, lanes and terrain, in numpy.
+
+Frame: rows run along +x from x = 0 to x = length; row j lies near y = j * inter_row,
+shifted so that the vineyard is centred on y = 0. A lane is the strip between two
+adjacent plant rows; lane k (1-based, as in the paper's test figure) lies between rows
+k - 1 and k. Its forward End of Row (EoR) is at the +x end, its reverse EoR at x = 0.
+
+Everything is drawn from one `numpy.random.Generator` seeded by `seed`, so the same
+(kind, seed, config) gives the same world bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mjxvine.config import WorldConfig
+
+TEST_LANE_SHAPES = ("straight", "straight", "hybrid", "curved", "curved")
+CENTERLINE_STEP_M = 0.25  # sampling of lane centerlines
+
+
+@dataclasses.dataclass(frozen=True)
+class Lane:
+  """A lane between two plant rows. `centerline` is (K, 2) metres, ordered along +x."""
+  id: int
+  shape: str
+  left_row: int
+  right_row: int
+  centerline: np.ndarray
+  eor_forward: np.ndarray  # (2,) the +x end of the centerline
+  eor_reverse: np.ndarray  # (2,) the x = 0 end
+
+
+@dataclasses.dataclass(frozen=True)
+class Vineyard:
+  """One generated world. Plant arrays are (P,) or (P, k) over the plants that exist.
+
+  plant_xy: (P, 2) m; plant_yaw: (P,) rad; plant_row: (P,) int; trunk_height: (P,) m;
+  canopy_half: (P, 3) ellipsoid semi-axes (m); canopy_z: (P,) canopy centre height (m).
+  terrain: (nrow, ncol) heights in metres over the rectangle `terrain_extent`
+  (xmin, xmax, ymin, ymax), row-major in y then x, as MuJoCo's heightfield stores it.
+  """
+  kind: str
+  seed: int
+  inter_row_m: float
+  spacing_m: float
+  length_m: float
+  row_y0: np.ndarray           # (R,) nominal y of each row at its straight part
+  plant_xy: np.ndarray
+  plant_yaw: np.ndarray
+  plant_row: np.ndarray
+  trunk_height: np.ndarray
+  trunk_radius: float
+  canopy_half: np.ndarray
+  canopy_z: np.ndarray
+  lanes: tuple[Lane, ...]
+  terrain: np.ndarray
+  terrain_extent: tuple[float, float, float, float]
+
+  @property
+  def num_rows(self) -> int:
+    return len(self.row_y0)
+
+  def rows(self) -> list[np.ndarray]:
+    """Plant positions per plant row, (n_j, 2) each, gaps absent."""
+    return [self.plant_xy[self.plant_row == j] for j in range(self.num_rows)]
+
+  def to_json(self, robot: str) -> dict:
+    """The `world.json` document of the worlds CLI."""
+    return {
+        "kind": self.kind,
+        "seed": self.seed,
+        "robot": robot,
+        "inter_row_m": self.inter_row_m,
+        "spacing_m": self.spacing_m,
+        "rows": [r.round(4).tolist() for r in self.rows()],
+        "lanes": [{
+            "id": l.id, "shape": l.shape,
+            "centerline": l.centerline.round(4).tolist(),
+            "eor_forward": l.eor_forward.round(4).tolist(),
+            "eor_reverse": l.eor_reverse.round(4).tolist(),
+        } for l in self.lanes],
+    }
+
+
+def _row_offsets(kind: str, num_rows: int, length: float, amplitude: float):
+  """Lateral offset functions y_j(x) - y_j(0) of each row, for x in [0, length].
+
+  Test world (6 rows): rows 0-2 straight; row 3 hybrid, H(x) = 0 for x < L/2 then a smooth
+  half-cosine rise to A at x = L; rows 4-5 curved, H(x) + A sin^2(pi x / L). Lane 3 (rows
+  2-3) is then straight-then-curved, lanes 4-5 curved (wander ~A), lanes 1-2 straight, and
+  no lane is ever narrower than the drawn inter-row distance. Each shape is smooth enough
+  for the fifth-order ground-truth fit of SPEC section 7.
+  """
+  def straight(x):
+    return np.zeros_like(x)
+
+  def hybrid(x):
+    t = np.clip((x - length / 2) / (length / 2), 0.0, 1.0)
+    return amplitude * (1 - np.cos(np.pi * t)) / 2
+
+  def curved(x):
+    return hybrid(x) + amplitude * np.sin(np.pi * x / length) ** 2
+
+  if kind == "train":
+    return [straight] * num_rows
+  return [straight, straight, straight, hybrid, curved, curved]
+
+
+def _terrain(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
+  """Bumps of +- amplitude on a `terrain_bump_m` grid, bilinearly refined to the cell size."""
+  xmin, xmax, ymin, ymax = extent
+  ncol = int(round((xmax - xmin) / cfg.terrain_cell_m)) + 1
+  nrow = int(round((ymax - ymin) / cfg.terrain_cell_m)) + 1
+  bx = int(np.ceil((xmax - xmin) / cfg.terrain_bump_m)) + 1
+  by = int(np.ceil((ymax - ymin) / cfg.terrain_bump_m)) + 1
+  coarse = rng.uniform(-cfg.terrain_amplitude_m, cfg.terrain_amplitude_m, size=(by, bx))
+  u = np.linspace(0, (xmax - xmin) / cfg.terrain_bump_m, ncol)
+  v = np.linspace(0, (ymax - ymin) / cfg.terrain_bump_m, nrow)
+  i0 = np.minimum(np.floor(v).astype(int), by - 2)
+  j0 = np.minimum(np.floor(u).astype(int), bx - 2)
+  fv, fu = (v - i0)[:, None], (u - j0)[None, :]
+  c00 = coarse[i0][:, j0]
+  c01 = coarse[i0][:, j0 + 1]
+  c10 = coarse[i0 + 1][:, j0]
+  c11 = coarse[i0 + 1][:, j0 + 1]
+  h = c00 * (1 - fv) * (1 - fu) + c01 * (1 - fv) * fu + c10 * fv * (1 - fu) + c11 * fv * fu
+  # MuJoCo rescales heightfield data to [0, 1]; pinning two far corners (in the margin,
+  # never driven on) to -+amplitude makes that rescaling the identity for every world.
+  h[0, 0], h[-1, -1] = -cfg.terrain_amplitude_m, cfg.terrain_amplitude_m
+  return h
+
+
+def _pick_gaps(rng, kind, row_of_slot, x_index, n_per_row, num_rows):
+  """Boolean mask of plants removed as gaps (test world only).
+
+  Single gaps: 4 random plants away from the row ends. Wide gaps: 2-3 consecutive plants,
+  one in a row bounding lane 3 (row 3) and one bounding lane 5 (row 5, the outer row).
+  """
+  removed = np.zeros(len(row_of_slot), bool)
+  if kind != "test":
+    return removed
+  for row in (3, 5):
+    n = n_per_row[row]
+    width = int(rng.integers(2, 4))
+    start = int(rng.integers(n // 4, 3 * n // 4 - width))
+    removed |= (row_of_slot == row) & (x_index >= start) & (x_index < start + width)
+  singles = 0
+  while singles < 4:
+    row = int(rng.integers(0, num_rows))
+    k = int(rng.integers(2, n_per_row[row] - 2))
+    idx = np.flatnonzero((row_of_slot == row) & (x_index == k))[0]
+    neighbours = (row_of_slot == row) & (np.abs(x_index - k) <= 1)
+    if not removed[neighbours].any():
+      removed[idx] = True
+      singles += 1
+  return removed
+
+
+def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
+  """Generates the train or test vineyard of `seed` (pure function of its arguments)."""
+  if kind not in ("train", "test"):
+    raise ValueError(f"kind must be 'train' or 'test', got {kind!r}")
+  rng = np.random.default_rng([seed, 0 if kind == "train" else 1])
+  num_rows = cfg.train_rows if kind == "train" else len(TEST_LANE_SHAPES) + 1
+  length = cfg.train_length_m if kind == "train" else cfg.test_length_m
+  inter_row = float(rng.uniform(*cfg.inter_row_m))
+  spacing = float(rng.uniform(*cfg.spacing_m))
+  offsets = _row_offsets(kind, num_rows, length, cfg.curve_amplitude_m)
+  row_y0 = (np.arange(num_rows) - (num_rows - 1) / 2) * inter_row
+
+  n = int(np.floor(length / spacing)) + 1
+  x_nom = np.arange(n) * spacing
+  xs, ys, rows, kidx = [], [], [], []
+  for j in range(num_rows):
+    jitter = rng.triangular(-1, 0, 1, size=(n, 2)) * spacing * cfg.jitter_frac
+    x = x_nom + jitter[:, 0]
+    xs.append(x)
+    ys.append(row_y0[j] + offsets[j](x_nom) + jitter[:, 1])
+    rows.append(np.full(n, j))
+    kidx.append(np.arange(n))
+  plant_xy = np.stack([np.concatenate(xs), np.concatenate(ys)], -1)
+  plant_row = np.concatenate(rows)
+  x_index = np.concatenate(kidx)
+  num = len(plant_row)
+  plant_yaw = rng.uniform(-np.pi, np.pi, num)
+  trunk_height = rng.uniform(*cfg.trunk_height_m, num)
+  canopy_top = rng.uniform(*cfg.canopy_top_m, num)
+  canopy_half = np.stack([rng.uniform(*cfg.canopy_width_m, num) / 2,
+                          rng.uniform(*cfg.canopy_width_m, num) / 2,
+                          (canopy_top - trunk_height) / 2], -1)
+  canopy_z = (canopy_top + trunk_height) / 2
+  keep = ~_pick_gaps(rng, kind, plant_row, x_index, [n] * num_rows, num_rows)
+
+  xy, row = plant_xy[keep], plant_row[keep]
+  shapes = TEST_LANE_SHAPES if kind == "test" else ("straight",) * (num_rows - 1)
+  lanes = tuple(Lane(k, shapes[k - 1], k - 1, k, *_centerline(xy, row, k, length))
+                for k in range(1, num_rows))
+  extent = world_extent(cfg)
+  return Vineyard(
+      kind=kind, seed=int(seed), inter_row_m=inter_row, spacing_m=spacing, length_m=length,
+      row_y0=row_y0, plant_xy=xy, plant_yaw=plant_yaw[keep],
+      plant_row=row, trunk_height=trunk_height[keep],
+      trunk_radius=cfg.trunk_radius_m, canopy_half=canopy_half[keep],
+      canopy_z=canopy_z[keep], lanes=lanes, terrain=_terrain(rng, cfg, extent),
+      terrain_extent=extent)
+
+
+def _centerline(plant_xy, plant_row, lane, length):
+  """Ground truth of a lane (SPEC section 7): midpoints of its two plant rows (each row
+  linearly interpolated over x, so gaps are bridged), fitted with a fifth-order polynomial
+  y(x). Returns (centerline (K, 2), eor_forward (2,), eor_reverse (2,))."""
+  xc = np.linspace(0.0, length, int(round(length / CENTERLINE_STEP_M)) + 1)
+  ys = []
+  for j in (lane - 1, lane):
+    p = plant_xy[plant_row == j]
+    order = np.argsort(p[:, 0])
+    ys.append(np.interp(xc, p[order, 0], p[order, 1]))
+  mid = (ys[0] + ys[1]) / 2
+  # Fit in a scaled variable: polyfit of degree 5 over x in [0, 28] is ill-conditioned.
+  poly = np.polynomial.Polynomial.fit(xc, mid, 5)
+  line = np.stack([xc, poly(xc)], -1)
+  return line, line[-1].copy(), line[0].copy()
+
+
+def world_extent(cfg: WorldConfig) -> tuple[float, float, float, float]:
+  """A terrain rectangle that covers every train and test world of `cfg`, so that all
+  worlds of a config share one heightfield shape (and so batch into one mjx.Model)."""
+  length = max(cfg.train_length_m, cfg.test_length_m)
+  half_y = (max(cfg.train_rows, len(TEST_LANE_SHAPES) + 1) - 1) / 2 * cfg.inter_row_m[1]
+  m = cfg.terrain_margin_m
+  return (-m, length + m, -half_y - m, half_y + 2 * cfg.curve_amplitude_m + m)
+
+
+def save_world(world: Vineyard, path: str | Path) -> None:
+  """Saves every array of a world to JSON (exact float64 round trip)."""
+  d = {f.name: getattr(world, f.name) for f in dataclasses.fields(world)}
+  d["lanes"] = [{f.name: (v.tolist() if isinstance(v, np.ndarray) else v)
+                 for f in dataclasses.fields(l) for v in [getattr(l, f.name)]}
+                for l in world.lanes]
+  d = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in d.items()}
+  Path(path).write_text(json.dumps(d))
+
+
+def load_world(path: str | Path) -> Vineyard:
+  """Loads a world saved by `save_world`."""
+  d = json.loads(Path(path).read_text())
+  lanes = tuple(Lane(**{k: (np.asarray(v) if isinstance(v, list) else v) for k, v in l.items()})
+                for l in d.pop("lanes"))
+  d["terrain_extent"] = tuple(d["terrain_extent"])
+  arrays = {k: np.asarray(v) for k, v in d.items() if isinstance(v, list)}
+  d.update(arrays)
+  d["terrain_extent"] = tuple(d["terrain_extent"])
+  return Vineyard(lanes=lanes, **d)

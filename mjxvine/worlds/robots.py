@@ -1,0 +1,88 @@
+"""Robot models (SPEC section 3): Jackal and Husky as a free-joint chassis on four driven
+sphere wheels, with the depth camera at the SPEC's mount. Lengths in metres, masses in kg."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotSpec:
+  name: str
+  length: float        # footprint L (x)
+  width: float         # footprint W (y)
+  height: float        # H, ground to top
+  chassis_mass: float
+  wheel_mass: float
+  wheel_radius: float
+  track: float         # distance between left and right wheel centres
+  wheelbase: float     # distance between front and rear axles
+  camera_ahead: float  # camera optical centre ahead of the base centre
+  camera_height: float  # camera optical centre above the ground
+  track_slip: float    # skid-steer expanded-track factor chi: w = (v_r - v_l) / (chi * track)
+
+  @property
+  def mass(self) -> float:
+    return self.chassis_mass + 4 * self.wheel_mass
+
+
+ROBOTS = {
+    "jackal": RobotSpec("jackal", 0.508, 0.430, 0.250, 16.5, 0.477, 0.098, 0.376, 0.262,
+                        0.21, 0.26, 1.8),
+    "husky": RobotSpec("husky", 0.990, 0.670, 0.390, 46.0, 2.64, 0.1651, 0.571, 0.512,
+                       0.445, 0.40, 3.5),
+}
+
+# Wheel order of the actuators: front-left, rear-left, front-right, rear-right.
+WHEEL_SIDES = (1, 1, -1, -1)  # +1 left, -1 right
+
+
+def add_robot(spec: mujoco.MjSpec, robot: RobotSpec, *, kv: float, friction: float, armature: float,
+              fovy_deg: float, max_wheel_speed: float) -> None:
+  """Adds the robot body `chassis` (frame origin at axle height) to `spec`.
+
+  Geoms are group 2 and only the wheels collide (with the terrain); the plants never
+  collide physically (collisions with plants are a geometric test of the environment).
+  """
+  r = robot.wheel_radius
+  chassis = spec.worldbody.add_body(name="chassis", pos=[0, 0, r + 0.01])
+  chassis.add_freejoint(name="root")
+  top = robot.height - r
+  chassis.add_geom(
+      name="chassis", type=mujoco.mjtGeom.mjGEOM_BOX,
+      size=[robot.length / 2, robot.width / 2 - 0.3 * r, top / 2 + 0.01],
+      pos=[0, 0, top / 2 - 0.01], mass=robot.chassis_mass, contype=0, conaffinity=0,
+      group=2, rgba=[0.85, 0.65, 0.1, 1])
+  for i, (fx, side) in enumerate(zip((1, -1, 1, -1), WHEEL_SIDES)):
+    wheel = chassis.add_body(name=f"wheel{i}",
+                             pos=[fx * robot.wheelbase / 2, side * robot.track / 2, 0])
+    # Armature: the reflected inertia of the geared motor; it also keeps the stiff
+    # velocity servo stable at the coarse physics step.
+    wheel.add_joint(name=f"wheel{i}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0],
+                    armature=armature)
+    wheel.add_geom(name=f"wheel{i}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[r, 0, 0],
+                   mass=robot.wheel_mass, friction=[friction, 0.005, 0.0001], condim=3,
+                   group=2, rgba=[0.1, 0.1, 0.1, 1])
+    act = spec.add_actuator(name=f"wheel{i}", target=f"wheel{i}",
+                            trntype=mujoco.mjtTrn.mjTRN_JOINT)
+    act.set_to_velocity(kv=kv)
+    act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+    act.ctrlrange = [-max_wheel_speed, max_wheel_speed]
+  # MuJoCo cameras look along -z with +y up: x_cam = -y_body (right), y_cam = +z_body.
+  chassis.add_camera(name="depth", pos=[robot.camera_ahead, 0, robot.camera_height - r],
+                     xyaxes=[0, -1, 0, 0, 0, 1], fovy=fovy_deg)
+
+
+def wheel_speeds(v, w, robot: RobotSpec):
+  """Skid-steer wheel angular speeds (rad/s) for body speeds v (m/s), w (rad/s), as
+  (front-left, rear-left, front-right, rear-right); works on numpy and jax arrays.
+
+  Skid-steering slips sideways when turning; the usual kinematic model widens the track
+  by a factor chi (`track_slip`), calibrated so that the simulated yaw rate follows w.
+  """
+  half = robot.track_slip * robot.track / 2
+  left = (v - w * half) / robot.wheel_radius
+  right = (v + w * half) / robot.wheel_radius
+  return left, left, right, right

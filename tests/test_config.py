@@ -1,0 +1,78 @@
+import pytest
+
+from mjxvine.config import ConfigError, config_hash, load_config, to_yaml
+
+
+def test_defaults_are_the_spec():
+  cfg = load_config()
+  assert cfg.world.inter_row_m == (1.5, 2.0)
+  assert cfg.world.spacing_m == (0.7, 1.0)
+  assert (cfg.camera.width, cfg.camera.height) == (112, 112)
+  assert cfg.camera.fovx_deg == 60.0 and cfg.camera.fovy_deg == 46.8
+  assert cfg.env.max_steps == 700 and cfg.env.control_dt == 0.1
+  assert cfg.sac.learning_rate == 2e-4 and cfg.sac.tau == 5e-3 and cfg.sac.alpha == 0.2
+
+
+def test_yaml_and_overrides(tmp_path):
+  path = tmp_path / "c.yaml"
+  path.write_text("env:\n  num_envs: 8\nworld:\n  spacing_m: [0.8, 0.9]\n")
+  cfg = load_config(path, ["env.max_steps=50", "robot.name=husky", "sac.auto_alpha=true"])
+  assert cfg.env.num_envs == 8 and cfg.env.max_steps == 50
+  assert cfg.world.spacing_m == (0.8, 0.9)
+  assert cfg.robot.name == "husky" and cfg.sac.auto_alpha is True
+  # The resolved YAML loads back to the same config.
+  path2 = tmp_path / "resolved.yaml"
+  path2.write_text(to_yaml(cfg))
+  assert load_config(path2) == cfg
+  assert config_hash(load_config(path2)) == config_hash(cfg)
+
+
+@pytest.mark.parametrize("override, key", [
+    ("env.nope=1", "env.nope"),
+    ("nosection.x=1", "nosection"),
+    ("world.spacing_m=[-0.5,1.0]", "world.spacing_m"),
+    ("world.spacing_m=[1.0,0.7]", "world.spacing_m"),
+    ("camera.width=0", "camera.width"),
+    ("camera.height=abc", "camera.height"),
+    ("env.num_envs=2.5", "env.num_envs"),
+    ("robot.name=tank", "robot.name"),
+    ("sac.auto_alpha=maybe", "sac.auto_alpha"),
+    ("world.inter_row_m=[0.8,2.0]", "world.inter_row_m"),
+    ("env.physics_dt=0.03", "env.physics_dt"),
+    ("sac.gamma=1.5", "sac.gamma"),
+    ("world.terrain_amplitude_m=nan", "world.terrain_amplitude_m"),
+])
+def test_bad_values_name_the_key(override, key):
+  with pytest.raises(ConfigError) as e:
+    load_config(None, [override])
+  assert str(e.value).startswith(key), str(e.value)
+  assert "\n" not in str(e.value)
+
+
+def test_lanes_must_fit_the_robot():
+  # Husky (0.67 m) fits 1.5 m rows with 0.5 m canopies, but not 1.1 m ones; Jackal does.
+  load_config(None, ["robot.name=husky"])
+  load_config(None, ["world.inter_row_m=[1.1,2.0]"])
+  with pytest.raises(ConfigError, match="^world.inter_row_m.*husky"):
+    load_config(None, ["world.inter_row_m=[1.1,2.0]", "robot.name=husky"])
+
+
+def test_missing_file_and_bad_yaml(tmp_path):
+  with pytest.raises(ConfigError, match="not found"):
+    load_config(tmp_path / "missing.yaml")
+  bad = tmp_path / "bad.yaml"
+  bad.write_text("env: [1, 2\n")
+  with pytest.raises(ConfigError, match="not valid YAML"):
+    load_config(bad)
+  with pytest.raises(ConfigError, match="env: expected a mapping"):
+    bad.write_text("env: 3\n")
+    load_config(bad)
+
+
+def test_experiment_configs_load():
+  from pathlib import Path
+  root = Path(__file__).parent.parent / "experiments"
+  files = sorted(root.glob("*.yaml"))
+  assert {"paper.yaml", "smoke.yaml"} <= {f.name for f in files}
+  for f in files:
+    load_config(f)
