@@ -1,0 +1,434 @@
+"""Soft Actor-Critic (Haarnoja et al. 2018), pure-functional, with a device replay buffer.
+
+Everything here is a pure function of pytrees, jit-able and scan-able:
+  * `make_sac(nets, cfg)` -> `SAC` with `init`, `update`, `update_many`, `act`,
+    `act_deterministic`;
+  * losses `critic_loss`, `actor_loss`, `alpha_loss` and `polyak`;
+  * the replay buffer `init_buffer` / `insert` / `sample`;
+  * exploration `explore_action` / `decay_eps` (SPEC section 6).
+
+Bootstrapping: the target is `r + gamma * (1 - terminal) * (min_i Q'_i(s', a') - alpha
+log pi(a'|s'))`; a time-out (`truncated`) is *not* terminal and bootstraps through
+`next_obs`, which must be the true successor observation (before any auto-reset).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, NamedTuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import optax
+
+from mjxvine import networks as nw
+from mjxvine.config import SACConfig
+
+Params = Any
+Obs = Any
+
+
+class Transition(NamedTuple):
+  """A batch of transitions; every leaf has the leading batch axis B.
+
+  obs / next_obs: observation pytrees (dict {"depth", "state"} or a vector).
+  action (B, A) in the action box; reward (B,); terminal (B,) 1.0 where the episode
+  ended in a true MDP terminal (collision, success, ...); truncated (B,) 1.0 where it
+  ended by the time limit only; weight (B,) or None: per-sample weight of the critic
+  loss (the buffer sets 0.0 for a truncated transition whose final frame was evicted).
+  """
+  obs: Obs
+  action: jax.Array
+  reward: jax.Array
+  terminal: jax.Array
+  truncated: jax.Array
+  next_obs: Obs
+  weight: jax.Array | None = None
+
+
+class LearnerState(flax.struct.PyTreeNode):
+  """All mutable learner state. Critic params carry a leading twin axis of size 2."""
+  actor_params: Params
+  critic_params: Params
+  target_critic_params: Params
+  actor_opt_state: optax.OptState
+  critic_opt_state: optax.OptState
+  alpha_opt_state: optax.OptState
+  log_alpha: jax.Array  # () float32
+  step: jax.Array  # () int32, gradient steps taken
+
+
+# ----------------------------------------------------------------------------------------
+# Losses.
+
+
+def _wmean(x: jax.Array, w: jax.Array | None) -> jax.Array:
+  """Mean of x (B,) weighted by w (B,) (plain mean if w is None)."""
+  if w is None:
+    return jnp.mean(x)
+  return jnp.sum(w * x) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def critic_target(nets: nw.SACNetworks, actor_params: Params, target_critic_params: Params,
+                  alpha: jax.Array, batch: Transition, key: jax.Array,
+                  gamma: float) -> jax.Array:
+  """Soft TD target y (B,), without gradient.
+
+  y = r + gamma * (1 - terminal) * (min_i Q'_i(s', a') - alpha * log pi(a'|s')),
+  a' ~ pi(.|s'). Truncation does not stop bootstrapping.
+  """
+  mean, log_std = nets.actor.apply({"params": actor_params}, batch.next_obs)
+  next_a, next_logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
+  next_q = nets.critic.apply({"params": target_critic_params}, batch.next_obs, next_a)
+  next_v = jnp.min(next_q, axis=0) - alpha * next_logp
+  y = batch.reward + gamma * (1.0 - batch.terminal) * next_v
+  return jax.lax.stop_gradient(y)
+
+
+def critic_loss(critic_params: Params, target_critic_params: Params, actor_params: Params,
+                alpha: jax.Array, batch: Transition, key: jax.Array, nets: nw.SACNetworks,
+                gamma: float) -> tuple[jax.Array, dict]:
+  """Twin-Q loss: 0.5 * sum_i wmean_b (Q_i(s, a) - y)^2. Returns (loss, {"q": (2, B)})."""
+  y = critic_target(nets, actor_params, target_critic_params, alpha, batch, key, gamma)
+  q = nets.critic.apply({"params": critic_params}, batch.obs, batch.action)  # (2, B)
+  per_sample = 0.5 * jnp.sum((q - y[None]) ** 2, axis=0)
+  return _wmean(per_sample, batch.weight), {"q": q, "target": y}
+
+
+def actor_loss(actor_params: Params, critic_params: Params, alpha: jax.Array, batch: Transition,
+               key: jax.Array, nets: nw.SACNetworks) -> tuple[jax.Array, jax.Array]:
+  """mean_b (alpha * log pi(a|s) - min_i Q_i(s, a)), a ~ pi(.|s) reparameterised.
+
+  Returns (loss, log_prob (B,)).
+  """
+  mean, log_std = nets.actor.apply({"params": actor_params}, batch.obs)
+  a, logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
+  q = nets.critic.apply({"params": critic_params}, batch.obs, a)
+  return jnp.mean(alpha * logp - jnp.min(q, axis=0)), logp
+
+
+def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array, target_entropy: float) -> jax.Array:
+  """Temperature loss -mean(log_alpha * (log pi + target_entropy)), log_prob held fixed."""
+  return -jnp.mean(log_alpha * jax.lax.stop_gradient(log_prob + target_entropy))
+
+
+def polyak(target: Params, online: Params, tau: float) -> Params:
+  """Soft update: target <- (1 - tau) * target + tau * online, leaf by leaf."""
+  return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
+
+
+# ----------------------------------------------------------------------------------------
+# The learner.
+
+
+class SAC(NamedTuple):
+  """SAC functions closed over the networks and config (all jit-able).
+
+  init(key, obs) -> LearnerState                       obs: example with a batch axis
+  update(state, batch, key) -> (state, metrics)        one gradient step
+  update_many(state, buffer, key) -> (state, metrics)  cfg.grad_steps_per_iter steps
+                                                        on cfg.batch_size samples each
+  act(actor_params, obs, key) -> action (..., A)       stochastic (squashed sample)
+  act_deterministic(actor_params, obs) -> (..., A)     squashed mean (test time)
+  """
+  nets: nw.SACNetworks
+  cfg: SACConfig
+  init: Callable
+  update: Callable
+  update_many: Callable
+  act: Callable
+  act_deterministic: Callable
+
+
+def make_sac(nets: nw.SACNetworks, cfg: SACConfig) -> SAC:
+  """Builds the SAC learner for `nets` with hyper-parameters `cfg`."""
+  opt = optax.adam(cfg.learning_rate)
+
+  def init(key: jax.Array, obs: Obs) -> LearnerState:
+    actor_params, critic_params = nw.init_params(nets, key, obs)
+    log_alpha = jnp.asarray(math.log(max(cfg.alpha, 1e-8)), jnp.float32)
+    return LearnerState(
+        actor_params=actor_params, critic_params=critic_params,
+        target_critic_params=jax.tree.map(jnp.copy, critic_params),
+        actor_opt_state=opt.init(actor_params), critic_opt_state=opt.init(critic_params),
+        alpha_opt_state=opt.init(log_alpha), log_alpha=log_alpha,
+        step=jnp.zeros((), jnp.int32))
+
+  def update(state: LearnerState, batch: Transition, key: jax.Array):
+    k_critic, k_actor = jax.random.split(key)
+    alpha = jnp.exp(state.log_alpha)
+
+    (c_loss, c_aux), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(
+        state.critic_params, state.target_critic_params, state.actor_params, alpha, batch,
+        k_critic, nets, cfg.gamma)
+    c_updates, critic_opt_state = opt.update(c_grads, state.critic_opt_state)
+    critic_params = optax.apply_updates(state.critic_params, c_updates)
+
+    (a_loss, logp), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(
+        state.actor_params, critic_params, alpha, batch, k_actor, nets)
+    a_updates, actor_opt_state = opt.update(a_grads, state.actor_opt_state)
+    actor_params = optax.apply_updates(state.actor_params, a_updates)
+
+    log_alpha, alpha_opt_state = state.log_alpha, state.alpha_opt_state
+    al_loss = alpha_loss(log_alpha, logp, cfg.target_entropy)
+    if cfg.auto_alpha:
+      g = jax.grad(alpha_loss)(log_alpha, logp, cfg.target_entropy)
+      al_updates, alpha_opt_state = opt.update(g, alpha_opt_state)
+      log_alpha = optax.apply_updates(log_alpha, al_updates)
+
+    new_state = LearnerState(
+        actor_params=actor_params, critic_params=critic_params,
+        target_critic_params=polyak(state.target_critic_params, critic_params, cfg.tau),
+        actor_opt_state=actor_opt_state, critic_opt_state=critic_opt_state,
+        alpha_opt_state=alpha_opt_state, log_alpha=log_alpha, step=state.step + 1)
+    metrics = {
+        "critic_loss": c_loss, "actor_loss": a_loss, "alpha_loss": al_loss,
+        "alpha": jnp.exp(log_alpha), "q_mean": jnp.mean(c_aux["q"]),
+        "target_mean": jnp.mean(c_aux["target"]), "entropy": -jnp.mean(logp),
+    }
+    return new_state, metrics
+
+  def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array):
+    def body(st, k):
+      k_sample, k_update = jax.random.split(k)
+      return update(st, sample(buffer, k_sample, cfg.batch_size), k_update)
+    state, metrics = jax.lax.scan(body, state, jax.random.split(key, cfg.grad_steps_per_iter))
+    return state, jax.tree.map(jnp.mean, metrics)
+
+  def act(actor_params: Params, obs: Obs, key: jax.Array) -> jax.Array:
+    mean, log_std = nets.actor.apply({"params": actor_params}, obs)
+    return nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)[0]
+
+  def act_deterministic(actor_params: Params, obs: Obs) -> jax.Array:
+    mean, _ = nets.actor.apply({"params": actor_params}, obs)
+    return nw.deterministic_action(mean, nets.action_low, nets.action_high)
+
+  return SAC(nets, cfg, init, update, update_many, act, act_deterministic)
+
+
+# ----------------------------------------------------------------------------------------
+# Depth quantisation (one place, so that mjxvine.depth can provide it later).
+
+
+def quantize_depth(depth_m: jax.Array, max_depth: float, dtype=jnp.uint16) -> jax.Array:
+  """Depth in metres -> unsigned ints over [0, max_depth] (NaN -> 0, above -> max).
+
+  The round-trip error is at most max_depth / (2 * iinfo(dtype).max): 0.038 mm for
+  uint16 and 9.8 mm for uint8 at max_depth 5 m.
+  """
+  qmax = jnp.iinfo(dtype).max
+  d = jnp.clip(jnp.nan_to_num(depth_m, nan=0.0, posinf=max_depth, neginf=0.0), 0.0, max_depth)
+  return jnp.round(d * (qmax / max_depth)).astype(dtype)
+
+
+def dequantize_depth(q: jax.Array, max_depth: float) -> jax.Array:
+  """Inverse of `quantize_depth`: unsigned ints -> float32 metres."""
+  return q.astype(jnp.float32) * jnp.float32(max_depth / jnp.iinfo(q.dtype).max)
+
+
+# ----------------------------------------------------------------------------------------
+# Replay buffer.
+#
+# Layout: rows of N transitions, one row per `insert` of the N parallel envs, in a ring
+# of S = capacity // N rows. Each depth frame is stored once: the next depth of
+# transition (r, n) is the depth of (r + 1, n), unless the episode ended at r. A terminal
+# needs no next frame (it is multiplied by 0); a truncation does, so its final frame goes
+# into a small side ring of K frames (owner-tagged; if it was evicted before the
+# transition, the sample comes with weight 0). Non-depth observation leaves (the state
+# vector, or a whole vector observation) are small and stored for obs and next_obs.
+#
+# Bytes per transition (112x112 depth, state 3, action 2, K = capacity // 64):
+#   depth 12544 x itemsize + state 2 x 12 + action 8 + reward 4 + flags 2 + final_slot 4
+#   + side ring (12544 x itemsize + 4) / 64
+#   uint8: 12,782 B (1e6 transitions: 12.8 GB); uint16: 25,522 B (1e5: 2.6 GB).
+
+
+class ReplayBuffer(flax.struct.PyTreeNode):
+  """Preallocated ring buffer of transitions (see the layout note above).
+
+  depth (S, N, H, W, 1) uint, or None for vector observations; rest (S, N, ...) the
+  non-depth observation leaves and next_rest their successors; action (S, N, A);
+  reward (S, N); terminal, truncated (S, N) bool; final_slot (S, N) int32 (-1: none);
+  final_depth (K, H, W, 1); final_owner (K,) int32 (r * N + n, -1: free);
+  final_ptr () int32; rows_written () int32 (inserts so far).
+  """
+  depth: jax.Array | None
+  rest: Any
+  next_rest: Any
+  action: jax.Array
+  reward: jax.Array
+  terminal: jax.Array
+  truncated: jax.Array
+  final_slot: jax.Array | None
+  final_depth: jax.Array | None
+  final_owner: jax.Array | None
+  final_ptr: jax.Array
+  rows_written: jax.Array
+  max_depth: float = flax.struct.field(pytree_node=False, default=5.0)
+
+  @property
+  def num_rows(self) -> int:
+    return self.action.shape[0]
+
+  @property
+  def num_envs(self) -> int:
+    return self.action.shape[1]
+
+  @property
+  def capacity(self) -> int:
+    """Transitions held when full (num_rows * num_envs)."""
+    return self.num_rows * self.num_envs
+
+
+def _split_obs(obs: Obs) -> tuple[jax.Array | None, Any]:
+  """obs -> (depth or None, the other leaves)."""
+  if isinstance(obs, dict) and "depth" in obs:
+    return obs["depth"], {k: v for k, v in obs.items() if k != "depth"}
+  return None, obs
+
+
+def _join_obs(depth: jax.Array | None, rest: Any) -> Obs:
+  if depth is None:
+    return rest
+  return {"depth": depth, **rest}
+
+
+def init_buffer(obs: Obs, action_size: int, capacity: int, max_depth: float = 5.0,
+                depth_dtype=jnp.uint16, final_slots: int | None = None) -> ReplayBuffer:
+  """An empty buffer for batches shaped like `obs` (leading axis: the N parallel envs).
+
+  Holds capacity // N rows of N transitions. `final_slots` (K, default
+  max(2N, capacity // 64)) is the side ring of truncation frames, K >= N.
+  Use `jax.eval_shape(init_buffer, ...)` to size a buffer without allocating it.
+  """
+  depth, rest = _split_obs(obs)
+  n = jax.tree.leaves(obs)[0].shape[0]
+  rows = capacity // n
+  if rows < 2:
+    raise ValueError(f"capacity {capacity} must hold at least 2 rows of {n} envs")
+  k = max(2 * n, capacity // 64) if final_slots is None else final_slots
+  if k < n:
+    raise ValueError(f"final_slots {k} must be >= num_envs {n}")
+  rest_buf = jax.tree.map(lambda x: jnp.zeros((rows,) + x.shape, x.dtype), rest)
+  kw = dict(depth=None, final_slot=None, final_depth=None, final_owner=None)
+  if depth is not None:
+    kw = dict(depth=jnp.zeros((rows,) + depth.shape, depth_dtype),
+              final_slot=jnp.full((rows, n), -1, jnp.int32),
+              final_depth=jnp.zeros((k,) + depth.shape[1:], depth_dtype),
+              final_owner=jnp.full((k,), -1, jnp.int32))
+  return ReplayBuffer(
+      rest=rest_buf, next_rest=jax.tree.map(jnp.copy, rest_buf),
+      action=jnp.zeros((rows, n, action_size), jnp.float32),
+      reward=jnp.zeros((rows, n), jnp.float32),
+      terminal=jnp.zeros((rows, n), bool), truncated=jnp.zeros((rows, n), bool),
+      final_ptr=jnp.zeros((), jnp.int32), rows_written=jnp.zeros((), jnp.int32),
+      max_depth=float(max_depth), **kw)
+
+
+def buffer_nbytes(buffer: ReplayBuffer) -> int:
+  """Total bytes of the buffer's arrays (works on `jax.eval_shape` results too)."""
+  return sum(int(math.prod(x.shape)) * x.dtype.itemsize for x in jax.tree.leaves(buffer))
+
+
+def insert(buffer: ReplayBuffer, tr: Transition) -> ReplayBuffer:
+  """Writes one row: the N transitions of one step of the N envs (leading axis N).
+
+  Consecutive inserts must be consecutive steps of the same envs (env n in slot n),
+  as the next depth of a non-final transition is read from the following row.
+  """
+  s, n = buffer.num_rows, buffer.num_envs
+  r = buffer.rows_written % s
+  terminal = tr.terminal.astype(bool)
+  truncated = tr.truncated.astype(bool)
+  depth, rest = _split_obs(tr.obs)
+  _, next_rest = _split_obs(tr.next_obs)
+  setrow = lambda buf, x: buf.at[r].set(x.astype(buf.dtype))
+  updates = dict(
+      rest=jax.tree.map(setrow, buffer.rest, rest),
+      next_rest=jax.tree.map(setrow, buffer.next_rest, next_rest),
+      action=setrow(buffer.action, tr.action), reward=setrow(buffer.reward, tr.reward),
+      terminal=setrow(buffer.terminal, terminal), truncated=setrow(buffer.truncated, truncated),
+      rows_written=buffer.rows_written + 1)
+  if buffer.depth is not None:
+    k = buffer.final_owner.shape[0]
+    env = jnp.arange(n)
+    need = truncated & ~terminal
+    count = jnp.cumsum(need.astype(jnp.int32))
+    slot = jnp.where(need, (buffer.final_ptr + count - 1) % k, k)  # k: dropped
+    # Free the slots being reused: their previous owner loses its final frame.
+    prev = buffer.final_owner.at[slot].get(mode="fill", fill_value=-1)
+    pr, pn = prev // n, prev % n
+    held = (prev >= 0) & (buffer.final_slot.at[pr, pn].get(mode="fill", fill_value=-1) == slot)
+    final_slot = buffer.final_slot.at[jnp.where(held, pr, s), pn].set(-1, mode="drop")
+    next_depth, _ = _split_obs(tr.next_obs)
+    dtype = buffer.depth.dtype
+    updates.update(
+        depth=buffer.depth.at[r].set(quantize_depth(depth, buffer.max_depth, dtype)),
+        final_depth=buffer.final_depth.at[slot].set(
+            quantize_depth(next_depth, buffer.max_depth, dtype), mode="drop"),
+        final_owner=buffer.final_owner.at[slot].set(r * n + env, mode="drop"),
+        final_slot=final_slot.at[r].set(jnp.where(need, slot, -1)),
+        final_ptr=(buffer.final_ptr + count[-1]) % k)
+  return buffer.replace(**updates)
+
+
+def num_sampleable(buffer: ReplayBuffer) -> jax.Array:
+  """Transitions `sample` draws from: all written rows but the newest, times N."""
+  return (jnp.minimum(buffer.rows_written, buffer.num_rows) - 1).clip(0) * buffer.num_envs
+
+
+def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
+  """Draws `batch_size` transitions uniformly (with replacement), depth dequantised.
+
+  Needs at least 2 inserts (the newest row waits for its successor frames).
+  """
+  s, n = buffer.num_rows, buffer.num_envs
+  k_row, k_env = jax.random.split(key)
+  w = buffer.rows_written
+  count = jnp.maximum(jnp.minimum(w, s) - 1, 1)
+  oldest = jnp.where(w > s, w % s, 0)
+  r = (oldest + jax.random.randint(k_row, (batch_size,), 0, count)) % s
+  e = jax.random.randint(k_env, (batch_size,), 0, n)
+  r1 = (r + 1) % s
+  get = lambda x: x[r, e]
+  terminal, truncated = get(buffer.terminal), get(buffer.truncated)
+  weight = jnp.ones((batch_size,), jnp.float32)
+  depth = next_depth = None
+  if buffer.depth is not None:
+    need = truncated & ~terminal
+    fs = get(buffer.final_slot)
+    side = buffer.final_depth[jnp.maximum(fs, 0)]
+    nd = jnp.where(need[:, None, None, None], side, buffer.depth[r1, e])
+    depth = dequantize_depth(get(buffer.depth), buffer.max_depth)
+    next_depth = dequantize_depth(nd, buffer.max_depth)
+    weight = jnp.where(need & (fs < 0), 0.0, 1.0)
+  return Transition(
+      obs=_join_obs(depth, jax.tree.map(get, buffer.rest)),
+      action=get(buffer.action), reward=get(buffer.reward),
+      terminal=terminal.astype(jnp.float32), truncated=truncated.astype(jnp.float32),
+      next_obs=_join_obs(next_depth, jax.tree.map(get, buffer.next_rest)), weight=weight)
+
+
+# ----------------------------------------------------------------------------------------
+# Exploration (SPEC section 6).
+
+
+def explore_action(key: jax.Array, policy_action: jax.Array, eps: jax.Array, low: jax.Array,
+                   high: jax.Array, warmup: jax.Array | bool) -> jax.Array:
+  """Warm-up / epsilon-greedy exploration on top of the SAC sample.
+
+  policy_action (N, A); eps (N,) per-env probabilities; low, high (A,); warmup: bool
+  scalar or (N,). Where warming up, or with probability eps, the action is uniform in
+  the box with each dimension drawn independently; otherwise policy_action.
+  """
+  k_uniform, k_coin = jax.random.split(key)
+  rand = jax.random.uniform(k_uniform, policy_action.shape, policy_action.dtype, low, high)
+  explore = jnp.logical_or(warmup, jax.random.uniform(k_coin, eps.shape) < eps)
+  return jnp.where(explore[..., None], rand, policy_action)
+
+
+def decay_eps(eps: jax.Array, done: jax.Array, decay: float = 0.992,
+              floor: float = 0.05) -> jax.Array:
+  """Per-env epsilon after a step: eps * decay (not below floor) where done, else eps."""
+  return jnp.where(done, jnp.maximum(eps * decay, floor), eps)

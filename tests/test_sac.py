@@ -1,0 +1,364 @@
+"""SAC: losses against numpy, Polyak, bootstrapping, replay buffer, exploration, learning."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjxvine import networks as nw
+from mjxvine import sac
+from mjxvine.config import SACConfig
+
+LOW, HIGH = np.array([0.0, -1.0], np.float32), np.array([0.5, 1.0], np.float32)
+GAMMA, ALPHA, B = 0.9, 0.3, 6
+
+
+# ----------------------------------------------------------------------------------------
+# Tiny vector-observation networks and a hand-written numpy reference.
+
+
+@pytest.fixture(scope="session")
+def tiny():
+  """Tiny nets (obs 3 -> 8 -> 8), params, a fixed batch and the jitted loss functions."""
+  nets = nw.make_networks(LOW, HIGH, hidden=8)
+  rng = np.random.default_rng(0)
+  f32 = lambda x: jnp.asarray(x, jnp.float32)
+  batch = sac.Transition(
+      obs=f32(rng.normal(size=(B, 3))), action=f32(rng.uniform(LOW, HIGH, size=(B, 2))),
+      reward=f32(rng.normal(size=B)), terminal=f32([0, 1, 0, 0, 1, 0]),
+      truncated=f32([0, 0, 1, 0, 1, 0]), next_obs=f32(rng.normal(size=(B, 3))))
+  actor, critic = jax.jit(lambda k: nw.init_params(nets, k, batch.obs))(jax.random.PRNGKey(0))
+  # A target that differs from the online critic.
+  target = jax.tree.map(lambda x: x + 0.05 * np.sin(np.arange(x.size).reshape(x.shape)), critic)
+  fns = dict(
+      critic_loss=jax.jit(lambda c, t, a, b, k: sac.critic_loss(c, t, a, ALPHA, b, k, nets, GAMMA)),
+      actor_loss=jax.jit(lambda a, c, b, k: sac.actor_loss(a, c, ALPHA, b, k, nets)),
+      target=jax.jit(lambda a, t, b, k: sac.critic_target(nets, a, t, ALPHA, b, k, GAMMA)))
+  return nets, actor, critic, target, batch, fns
+
+
+def _np(tree):
+  return jax.tree.map(lambda x: np.asarray(x, np.float64), tree)
+
+
+def _np_torso(p, x):
+  h = np.maximum(x @ p["dense0"]["kernel"] + p["dense0"]["bias"], 0)
+  return np.maximum(h @ p["dense1"]["kernel"] + p["dense1"]["bias"], 0)
+
+
+def _np_actor_sample(p, obs, key):
+  """Reparameterised squashed sample and its log-prob, by hand. Noise from `key`."""
+  h = _np_torso(p, obs)
+  mean = h @ p["mean"]["kernel"] + p["mean"]["bias"]
+  log_std = np.clip(h @ p["log_std"]["kernel"] + p["log_std"]["bias"], -20, 2)
+  noise = np.asarray(jax.random.normal(key, mean.shape, jnp.float32), np.float64)
+  u = mean + np.exp(log_std) * noise
+  a = LOW + (np.tanh(u) + 1) / 2 * (HIGH - LOW)
+  logp = np.sum(-0.5 * noise**2 - log_std - 0.5 * np.log(2 * np.pi), -1)
+  logp -= np.sum(np.log(1 - np.tanh(u) ** 2) + np.log((HIGH - LOW) / 2), -1)
+  return a, logp
+
+
+def _np_q(p, obs, action):
+  """(2, B) twin Q values by hand."""
+  out = []
+  for i in range(2):
+    pi = jax.tree.map(lambda x: x[i], p["critics"])
+    h = _np_torso(pi, np.concatenate([obs, action], -1))
+    out.append((h @ pi["q"]["kernel"] + pi["q"]["bias"])[:, 0])
+  return np.stack(out)
+
+
+def _np_target(actor, target, batch, key):
+  next_a, next_logp = _np_actor_sample(actor, batch.next_obs, key)
+  next_v = _np_q(target, batch.next_obs, next_a).min(0) - ALPHA * next_logp
+  return batch.reward + GAMMA * (1 - batch.terminal) * next_v
+
+
+def test_critic_loss_matches_numpy(tiny):
+  nets, actor, critic, target, batch, fns = tiny
+  key = jax.random.PRNGKey(7)
+  loss, aux = fns["critic_loss"](critic, target, actor, batch, key)
+  a, c, t, b = _np(actor), _np(critic), _np(target), _np(batch._replace(weight=None))
+  y = _np_target(a, t, b, key)
+  q = _np_q(c, b.obs, b.action)
+  np.testing.assert_allclose(np.asarray(aux["target"]), y, rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(np.asarray(aux["q"]), q, rtol=1e-5, atol=1e-5)
+  expected = np.mean(0.5 * np.sum((q - y) ** 2, 0))
+  np.testing.assert_allclose(float(loss), expected, rtol=1e-5)
+  # Per-sample weights: a weighted mean (zero weight drops the sample).
+  w = np.array([1, 0, 1, 1, 0, 1], np.float32)
+  wloss, _ = fns["critic_loss"](critic, target, actor, batch._replace(weight=jnp.asarray(w)), key)
+  expected_w = np.sum(w * 0.5 * np.sum((q - y) ** 2, 0)) / w.sum()
+  np.testing.assert_allclose(float(wloss), expected_w, rtol=1e-5)
+
+
+def test_actor_loss_matches_numpy(tiny):
+  nets, actor, critic, _, batch, fns = tiny
+  key = jax.random.PRNGKey(11)
+  loss, logp = fns["actor_loss"](actor, critic, batch, key)
+  a, c, b = _np(actor), _np(critic), _np(batch._replace(weight=None))
+  act, np_logp = _np_actor_sample(a, b.obs, key)
+  np.testing.assert_allclose(np.asarray(logp), np_logp, rtol=1e-4, atol=1e-4)
+  expected = np.mean(ALPHA * np_logp - _np_q(c, b.obs, act).min(0))
+  np.testing.assert_allclose(float(loss), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_alpha_loss_gradient_direction():
+  logp = jnp.array([1.0, 3.0])  # entropy -2 < target 0: alpha must grow
+  g = jax.grad(sac.alpha_loss)(jnp.float32(0.0), logp, 0.0)
+  assert float(g) == pytest.approx(-2.0)
+  np.testing.assert_allclose(float(sac.alpha_loss(jnp.float32(0.5), logp, -2.0)), -0.5 * 0.0)
+
+
+def test_terminal_zeroes_bootstrap_truncation_does_not(tiny):
+  nets, actor, _, target, batch, fns = tiny
+  key = jax.random.PRNGKey(3)
+  zeros = jnp.zeros(B)
+  plain = fns["target"](actor, target, batch._replace(terminal=zeros, truncated=zeros), key)
+  truncated = fns["target"](actor, target, batch._replace(terminal=zeros, truncated=zeros + 1),
+                            key)
+  terminal = fns["target"](actor, target, batch._replace(terminal=zeros + 1, truncated=zeros),
+                           key)
+  both = fns["target"](actor, target, batch._replace(terminal=zeros + 1, truncated=zeros + 1),
+                       key)
+  np.testing.assert_allclose(np.asarray(truncated), np.asarray(plain), rtol=1e-6)
+  np.testing.assert_allclose(np.asarray(terminal), np.asarray(batch.reward), rtol=1e-6)
+  np.testing.assert_allclose(np.asarray(both), np.asarray(batch.reward), rtol=1e-6)
+  assert not np.allclose(np.asarray(plain), np.asarray(batch.reward))
+
+
+def test_polyak():
+  target = {"a": jnp.array([0.0, 4.0]), "b": {"c": jnp.array(8.0)}}
+  online = {"a": jnp.array([4.0, 0.0]), "b": {"c": jnp.array(0.0)}}
+  out = sac.polyak(target, online, 0.25)
+  np.testing.assert_allclose(np.asarray(out["a"]), [1.0, 3.0])
+  np.testing.assert_allclose(float(out["b"]["c"]), 6.0)
+
+
+@pytest.mark.parametrize("auto_alpha", [False, True])
+def test_update_step(tiny, auto_alpha):
+  nets, _, _, _, batch, _ = tiny
+  cfg = SACConfig(tau=0.1, auto_alpha=auto_alpha, target_entropy=50.0)
+  agent = sac.make_sac(nets, cfg)
+  state = jax.jit(agent.init)(jax.random.PRNGKey(1), batch.obs)
+  assert float(jnp.exp(state.log_alpha)) == pytest.approx(0.2)
+  new, metrics = jax.jit(agent.update)(state, batch, jax.random.PRNGKey(2))
+  assert int(new.step) == 1
+  assert all(np.isfinite(float(v)) for v in metrics.values())
+  # Target = (1 - tau) old target + tau new online critic.
+  expect = jax.tree.map(lambda t, o: 0.9 * t + 0.1 * o, state.target_critic_params,
+                        new.critic_params)
+  jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7),
+               new.target_critic_params, expect)
+  changed = lambda a, b: not all(jax.tree.leaves(jax.tree.map(np.allclose, a, b)))
+  assert changed(new.actor_params, state.actor_params)
+  assert changed(new.critic_params, state.critic_params)
+  if auto_alpha:  # target entropy far above the policy's: alpha grows
+    assert float(new.log_alpha) > float(state.log_alpha)
+  else:
+    assert float(new.log_alpha) == float(state.log_alpha)
+
+
+# ----------------------------------------------------------------------------------------
+# Replay buffer.
+
+
+def test_quantisation_round_trip():
+  d = jax.random.uniform(jax.random.PRNGKey(0), (10_000,), minval=0.0, maxval=5.0)
+  for dtype, bound in ((jnp.uint16, 5.0 / (2 * 65535)), (jnp.uint8, 5.0 / (2 * 255))):
+    q = sac.quantize_depth(d, 5.0, dtype)
+    assert q.dtype == dtype
+    err = np.abs(np.asarray(sac.dequantize_depth(q, 5.0)) - np.asarray(d))
+    assert err.max() <= bound * 1.001 + 1e-6
+    edge = sac.dequantize_depth(sac.quantize_depth(jnp.array([-1.0, jnp.nan, 0.0, 5.0, 7.0]),
+                                                   5.0, dtype), 5.0)
+    np.testing.assert_allclose(np.asarray(edge), [0.0, 0.0, 0.0, 5.0, 5.0])
+
+
+def _frame(value, n=2, size=4):
+  return jnp.broadcast_to(jnp.asarray(value, jnp.float32)[:, None, None, None], (n, size, size, 1))
+
+
+def _depth_value(t, env):
+  return 0.1 * t + 0.01 * env + 0.5
+
+
+def test_buffer_depth_frames_wraparound_and_truncation():
+  """Frames stored once; next frame from the next row, or the side ring on truncation."""
+  n = 2
+  obs0 = {"depth": _frame([0.0, 0.0]), "state": jnp.zeros((n, 3))}
+  buf = sac.init_buffer(obs0, 2, capacity=8, final_slots=2)  # 4 rows of 2 envs
+  assert buf.num_rows == 4 and buf.capacity == 8
+  terminal = {(1, 1), (2, 1)}
+  truncated = {(2, 0), (3, 0), (3, 1), (2, 1)}  # (2, 1) is also terminal: no side frame
+  insert = jax.jit(sac.insert)
+  for t in range(5):
+    env = np.arange(n)
+    final = [4.5 + 0.01 * e + 0.1 * t for e in env]
+    tr = sac.Transition(
+        obs={"depth": _frame(_depth_value(t, env)),
+             "state": jnp.asarray(np.stack([np.full(n, t), env, np.zeros(n)], -1), jnp.float32)},
+        action=jnp.asarray(np.stack([np.full(n, t), env], -1), jnp.float32),
+        reward=jnp.asarray(10.0 * t + env, jnp.float32),
+        terminal=jnp.asarray([(t, e) in terminal for e in env], jnp.float32),
+        truncated=jnp.asarray([(t, e) in truncated for e in env], jnp.float32),
+        next_obs={"depth": _frame(final),  # only read where truncated
+                  "state": jnp.asarray(np.stack([np.full(n, t + 1), env, np.zeros(n)], -1),
+                                       jnp.float32)})
+    buf = insert(buf, tr)
+  assert int(sac.num_sampleable(buf)) == 6
+  batch = jax.jit(sac.sample, static_argnums=2)(buf, jax.random.PRNGKey(0), 512)
+  b = jax.tree.map(np.asarray, batch)
+  t, env = b.obs["state"][:, 0].astype(int), b.obs["state"][:, 1].astype(int)
+  assert set(zip(t, env)) == {(tt, e) for tt in (1, 2, 3) for e in (0, 1)}  # rows 1..3
+  np.testing.assert_array_equal(b.next_obs["state"][:, 0], t + 1)
+  np.testing.assert_array_equal(b.action[:, 0], t)
+  np.testing.assert_allclose(b.reward, 10.0 * t + env)
+  np.testing.assert_allclose(b.obs["depth"][:, 0, 0, 0], _depth_value(t, env), atol=1e-4)
+  assert b.obs["depth"].shape == (512, 4, 4, 1) and b.obs["depth"].dtype == np.float32
+  for i in range(512):
+    key = (t[i], env[i])
+    assert b.terminal[i] == (key in terminal) and b.truncated[i] == (key in truncated)
+    nd = b.next_obs["depth"][i]
+    if key == (2, 0):  # its side frame was reused by the third truncation: weight 0
+      assert b.weight[i] == 0.0
+      continue
+    assert b.weight[i] == 1.0
+    if key in truncated and key not in terminal:
+      np.testing.assert_allclose(nd, 4.5 + 0.01 * env[i] + 0.1 * t[i], atol=1e-4)
+    elif key not in terminal and key not in truncated:
+      np.testing.assert_allclose(nd, _depth_value(t[i] + 1, env[i]), atol=1e-4)
+
+
+def test_buffer_vector_observations():
+  n = 3
+  buf = sac.init_buffer(jnp.zeros((n, 4)), 1, capacity=12)  # 4 rows
+  assert buf.depth is None
+  insert = jax.jit(sac.insert)
+  for t in range(6):
+    obs = jnp.tile(jnp.arange(n, dtype=jnp.float32)[:, None], (1, 4)) + 100.0 * t
+    buf = insert(buf, sac.Transition(obs, jnp.full((n, 1), t, jnp.float32), jnp.zeros(n),
+                                     jnp.zeros(n), jnp.zeros(n), obs + 0.5))
+  b = jax.tree.map(np.asarray, jax.jit(sac.sample, static_argnums=2)(buf, jax.random.PRNGKey(1),
+                                                                      256))
+  t = b.action[:, 0].astype(int)
+  assert set(t) == {2, 3, 4}  # after wrap-around, the newest row (t=5) waits
+  np.testing.assert_allclose(b.next_obs, b.obs + 0.5)
+  assert set(np.round(b.obs[:, 0] - 100.0 * t).astype(int)) == {0, 1, 2}  # the env index
+  assert (b.weight == 1.0).all()
+
+
+def test_buffer_bytes_per_transition():
+  """1e6 transitions of 112x112 depth fit in 16 GB with uint8 frames stored once."""
+  def make(dtype):
+    obs = {"depth": jax.ShapeDtypeStruct((1000, 112, 112, 1), jnp.float32),
+           "state": jax.ShapeDtypeStruct((1000, 3), jnp.float32)}
+    return jax.eval_shape(lambda: sac.init_buffer(obs, 2, 1_000_000, depth_dtype=dtype))
+  per8 = sac.buffer_nbytes(make(jnp.uint8)) / 1e6
+  per16 = sac.buffer_nbytes(make(jnp.uint16)) / 1e6
+  assert per8 < 13_000 and per8 * 1e6 < 16e9
+  assert per16 < 26_000  # uint16: 100k-200k transitions (SPEC) in 2.6-5.1 GB
+
+
+# ----------------------------------------------------------------------------------------
+# Exploration.
+
+
+def test_explore_action():
+  n = 20_000
+  low, high = jnp.asarray(LOW), jnp.asarray(HIGH)
+  policy = jnp.tile(jnp.array([[0.3, 0.1]]), (n, 1))
+  warm = np.asarray(sac.explore_action(jax.random.PRNGKey(0), policy, jnp.zeros(n), low, high,
+                                       True))
+  assert (warm >= LOW).all() and (warm <= HIGH).all()
+  np.testing.assert_allclose(warm.mean(0), (LOW + HIGH) / 2, atol=0.02)
+  assert abs(np.corrcoef(warm.T)[0, 1]) < 0.05  # each dimension drawn independently
+  greedy = sac.explore_action(jax.random.PRNGKey(1), policy, jnp.zeros(n), low, high, False)
+  np.testing.assert_array_equal(np.asarray(greedy), np.asarray(policy))
+  mixed = np.asarray(sac.explore_action(jax.random.PRNGKey(2), policy, jnp.full(n, 0.3), low,
+                                        high, False))
+  assert abs(np.mean(np.any(mixed != np.asarray(policy), -1)) - 0.3) < 0.02
+
+
+def test_decay_eps():
+  eps = sac.decay_eps(jnp.array([1.0, 0.05, 0.5, 0.0504]), jnp.array([True, True, False, True]))
+  np.testing.assert_allclose(np.asarray(eps), [0.992, 0.05, 0.5, 0.05], rtol=1e-6)
+  e = jnp.ones(1)
+  for _ in range(1000):
+    e = sac.decay_eps(e, jnp.array([True]))
+  assert float(e[0]) == pytest.approx(0.05)
+  assert 0.992**100 == pytest.approx(float(
+      jax.lax.fori_loop(0, 100, lambda i, x: sac.decay_eps(x, True), jnp.float32(1.0))), rel=1e-5)
+
+
+# ----------------------------------------------------------------------------------------
+# Learning: a 1-D point mass that must move to a goal given in its observation.
+
+T_TOY, N_TOY = 20, 16
+
+
+def _toy_reset(key):
+  """Observation [x, goal], both uniform in [-1, 1]; returns (obs (N, 2), t (N,))."""
+  return jax.random.uniform(key, (N_TOY, 2), minval=-1.0, maxval=1.0), jnp.zeros(N_TOY, jnp.int32)
+
+
+def _toy_step(obs, t, action):
+  """x <- clip(x + 0.25 a, +-2); reward -|x - goal|; truncated after T_TOY steps."""
+  x = jnp.clip(obs[:, 0] + 0.25 * action[:, 0], -2.0, 2.0)
+  return obs.at[:, 0].set(x), t + 1, -jnp.abs(x - obs[:, 1]), t + 1 >= T_TOY
+
+
+def _toy_return(policy, key):
+  """Mean undiscounted return of `policy(obs, key) -> action` over N_TOY episodes."""
+  obs, t = _toy_reset(key)
+  def body(carry, k):
+    obs, t = carry
+    obs, t, r, _ = _toy_step(obs, t, policy(obs, k))
+    return (obs, t), r
+  _, rewards = jax.lax.scan(body, (obs, t), jax.random.split(key, T_TOY))
+  return float(rewards.sum(0).mean())
+
+
+def _train_toy(seed, iterations=500):
+  """Trains SAC on the toy task; returns (learned return, random-policy return)."""
+  cfg = SACConfig(learning_rate=1e-3, gamma=0.9, alpha=0.02, batch_size=64, warmup_steps=100,
+                  eps_decay=0.9)
+  nets = nw.make_networks([-1.0], [1.0], hidden=64)
+  agent = sac.make_sac(nets, cfg)
+  k_env, k_init, key = jax.random.split(jax.random.PRNGKey(seed), 3)
+  obs, t = _toy_reset(k_env)
+  learner = agent.init(k_init, obs)
+  buffer = sac.init_buffer(obs, 1, capacity=N_TOY * 1000)
+  zeros = jnp.zeros(N_TOY)
+
+  def iteration(carry, i):
+    obs, t, learner, buffer, eps, key = carry
+    key, k_act, k_explore, k_reset, k_update = jax.random.split(key, 5)
+    action = sac.explore_action(k_explore, agent.act(learner.actor_params, obs, k_act), eps,
+                                nets.action_low, nets.action_high, i < cfg.warmup_steps)
+    next_obs, t, reward, trunc = _toy_step(obs, t, action)
+    buffer = sac.insert(buffer, sac.Transition(obs, action, reward, zeros, trunc, next_obs))
+    learner = jax.lax.cond(i >= 1, lambda: agent.update_many(learner, buffer, k_update)[0],
+                           lambda: learner)
+    eps = sac.decay_eps(eps, trunc, cfg.eps_decay, cfg.eps_min)
+    reset_obs, _ = _toy_reset(k_reset)
+    obs = jnp.where(trunc[:, None], reset_obs, next_obs)
+    return (obs, jnp.where(trunc, 0, t), learner, buffer, eps, key), None
+
+  carry = (obs, t, learner, buffer, jnp.full(N_TOY, cfg.eps_start), key)
+  carry, _ = jax.jit(lambda c: jax.lax.scan(iteration, c, jnp.arange(iterations)))(carry)
+  learner = carry[2]
+  eval_key = jax.random.PRNGKey(123)
+  learned = _toy_return(lambda o, k: agent.act_deterministic(learner.actor_params, o), eval_key)
+  rand = _toy_return(lambda o, k: jax.random.uniform(k, (N_TOY, 1), minval=-1, maxval=1),
+                     eval_key)
+  return learned, rand
+
+
+def test_sac_learns_point_mass():
+  learned, rand = _train_toy(0)
+  assert rand < -8.0
+  assert learned > -3.0, (learned, rand)
