@@ -1,0 +1,369 @@
+"""The vineyard-row task as a pure-functional, jit-compiled brax `Env` (SPEC sections 4-5).
+
+One `VineyardEnv` holds a pool of worlds batched into one `mjx.Model` (per-world fields with
+a leading axis, `in_axes`); every env carries the index of its world in its state and
+reads that world's fields, so N envs under `jax.vmap` drive in N different vineyards.
+
+Observation: {"depth": (H, W, 1) float32 noisy z-depth in metres, "state": (3,)
+[v_prev m/s, w_prev rad/s, yaw rad]}. Action: [v, w] in physical units, v in [0, v_max]
+m/s, w in [-w_max, w_max] rad/s. Pose, lane and End of Row (EoR) live in `info` only.
+
+`step` auto-resets a finished env: it starts again from its start pose, and every
+`pose_reset_every` episodes from a new random pose (random world, lane, point along the
+lane, direction, jitter). `done` marks the end of an episode; `info["truncation"]` is 1
+where it ended by time-out or a physics reset, so that learners bootstrap through those.
+The batched trainer path `step_batch` also returns each env's pre-reset observation.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jp
+import mujoco
+import numpy as np
+from brax.envs.base import Env, State
+from mujoco import mjx
+
+from mjxvine import depth as depth_cam
+from mjxvine.config import Config
+from mjxvine.worlds import (ROBOTS, Vineyard, batch_models, build_models, generate_world,
+                            plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
+
+# Outcome codes of an episode (info["outcome"], evaluation tables).
+RUNNING, SUCCESS, COLLISION, REVERSED, LEFT_LANE, TIMEOUT, PHYSICS = range(7)
+OUTCOMES = ("running", "success", "collision", "reversed", "left_lane", "timeout", "physics")
+MAX_QVEL = 50.0  # beyond this (m/s or rad/s) the physics has exploded
+
+
+def _yaw(quat: jax.Array) -> jax.Array:
+  w, x, y, z = quat[0], quat[1], quat[2], quat[3]
+  return jp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def _wrap(angle: jax.Array) -> jax.Array:
+  return (angle + jp.pi) % (2 * jp.pi) - jp.pi
+
+
+class LaneTable:
+  """Lanes of every pool world, padded to a common count: centerlines (Wd, L, K, 2) m,
+  lane counts (Wd,), inter-row distances (Wd,) m."""
+
+  def __init__(self, worlds: Sequence[Vineyard]):
+    num = max(len(w.lanes) for w in worlds)
+    k = {len(l.centerline) for w in worlds for l in w.lanes}
+    if len(k) != 1:
+      raise ValueError("pool worlds must share the row length (centerline samples)")
+    lines = np.zeros((len(worlds), num, k.pop(), 2), np.float32)
+    for i, w in enumerate(worlds):
+      for j, lane in enumerate(w.lanes):
+        lines[i, j] = lane.centerline
+      lines[i, len(w.lanes):] = lines[i, len(w.lanes) - 1]
+    self.centerline = jp.asarray(lines)
+    self.count = jp.asarray([len(w.lanes) for w in worlds], jp.int32)
+    self.inter_row = jp.asarray([w.inter_row_m for w in worlds], jp.float32)
+
+
+def lane_frame(line: jax.Array, p: jax.Array, direction: jax.Array):
+  """Nearest centerline sample to p (2,) and the lane frame there for a travel direction.
+
+  Returns (index, tangent (2,) in the travel direction, lateral offset m (left +),
+  along-lane coordinate of p m).
+  """
+  i = jp.argmin(jp.sum((line - p) ** 2, -1))
+  k = line.shape[0]
+  a, b = line[jp.clip(i - 1, 0, k - 2)], line[jp.clip(i + 1, 1, k - 1)]
+  t = (b - a) / (jp.linalg.norm(b - a) + 1e-9) * direction
+  rel = p - line[i]
+  lateral = t[0] * rel[1] - t[1] * rel[0]
+  return i, t, lateral, rel @ t
+
+
+class VineyardEnv(Env):
+  """Batched vineyard-navigation environment over a pool of worlds (brax `Env`)."""
+
+  def __init__(self, cfg: Config, worlds: Sequence[Vineyard] | None = None, *,
+               noise_factor: float | None = None, auto_reset: bool = True):
+    """`worlds` defaults to the config's pool of train worlds (seeds train_seed ...)."""
+    if worlds is None:
+      worlds = [generate_world("train", cfg.world.train_seed + i, cfg.world)
+                for i in range(cfg.world.pool_size)]
+    self.cfg = cfg
+    self.worlds = list(worlds)
+    self.robot = ROBOTS[cfg.robot.name]
+    self.auto_reset = auto_reset
+    self.noise_factor = cfg.camera.noise_factor if noise_factor is None else noise_factor
+    models = build_models(self.worlds, cfg)
+    self.mj_model = models[0]
+    self.model, self.model_axes = batch_models(models)
+    self.camera = depth_cam.DepthCamera.create(self.mj_model, cfg.camera)
+    self.lanes = LaneTable(self.worlds)
+    self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds, cfg))
+    self._nsub = int(round(cfg.env.control_dt / cfg.env.physics_dt))
+    self.action_low = jp.array([0.0, -cfg.env.w_max], jp.float32)
+    self.action_high = jp.array([cfg.env.v_max, cfg.env.w_max], jp.float32)
+    data = mujoco.MjData(self.mj_model)
+    mujoco.mj_forward(self.mj_model, data)
+    self._data0 = mjx.put_data(self.mj_model, data)
+    hid = 0
+    self._hfield = (int(self.mj_model.hfield_nrow[hid]), int(self.mj_model.hfield_ncol[hid]))
+    self._terrain_geom = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_GEOM, "terrain")
+
+  # ------------------------------------------------------------------ brax Env API
+  @property
+  def observation_size(self):
+    c = self.cfg.camera
+    return {"depth": (c.height, c.width, 1), "state": (3,)}
+
+  @property
+  def action_size(self) -> int:
+    return 2
+
+  @property
+  def backend(self) -> str:
+    return "mjx"
+
+  def world_model(self, world: jax.Array) -> mjx.Model:
+    """The mjx.Model of pool world `world` (a traced index is fine)."""
+    return take_world(self.model, self.model_axes, world)
+
+  def reset(self, rng: jax.Array) -> State:
+    """A fresh env at a random start pose of a random pool world."""
+    k_pose, k_obs, k_next = jax.random.split(rng, 3)
+    pose = self.sample_pose(k_pose)
+    return self._start(pose, k_obs, k_next, episodes=jp.int32(0))
+
+  def reset_to(self, rng: jax.Array, world, lane, direction, along=0.0, lateral=0.0,
+               yaw=0.0) -> State:
+    """An env at a given start: lane index (0-based), direction (+1 forward, -1 reverse),
+    `along` (m from the lane's start in the travel direction), lateral offset (m) and yaw
+    offset (rad). Used by the evaluation protocol."""
+    k_obs, k_next = jax.random.split(rng)
+    pose = self._pose(jp.int32(world), jp.int32(lane), jp.float32(direction),
+                      jp.float32(along), jp.float32(lateral), jp.float32(yaw))
+    return self._start(pose, k_obs, k_next, episodes=jp.int32(0))
+
+  def step(self, state: State, action: jax.Array) -> State:
+    """One 0.1 s control step with auto-reset (see module docstring)."""
+    state, reset_mask = self._advance(state, action)
+    if self.auto_reset:
+      state = self._auto_reset(state, reset_mask)
+    return state
+
+  # ------------------------------------------------------------------ start poses
+  def sample_pose(self, key: jax.Array) -> dict:
+    """A random start: pool world, lane, direction, point along the lane, jitter."""
+    kw, kl, kd, ka, kx, ky = jax.random.split(key, 6)
+    env = self.cfg.env
+    world = jax.random.randint(kw, (), 0, len(self.worlds))
+    lane = jax.random.randint(kl, (), 0, self.lanes.count[world])
+    direction = jp.where(jax.random.bernoulli(kd), 1.0, -1.0)
+    length = self.worlds[0].length_m
+    along = jax.random.uniform(ka, (), minval=0.0, maxval=0.6 * length)
+    lateral = jax.random.uniform(kx, (), minval=-1.0, maxval=1.0) * env.start_lateral_jitter_m
+    yaw = jax.random.uniform(ky, (), minval=-1.0, maxval=1.0) * jp.deg2rad(
+        env.start_yaw_jitter_deg)
+    return self._pose(world, lane, direction, along, lateral, yaw)
+
+  def _pose(self, world, lane, direction, along, lateral, yaw) -> dict:
+    line = self.lanes.centerline[world, lane]
+    k = line.shape[0]
+    step = self.worlds[0].length_m / (k - 1)
+    idx = jp.clip(jp.round(along / step).astype(jp.int32), 0, k - 1)
+    idx = jp.where(direction > 0, idx, k - 1 - idx)
+    i, t, _, _ = lane_frame(line, line[idx], direction)
+    normal = jp.array([-t[1], t[0]])
+    xy = line[idx] + lateral * normal
+    heading = jp.arctan2(t[1], t[0]) + yaw
+    eor = jp.where(direction > 0, line[-1], line[0])
+    return dict(world=world, lane=lane, direction=direction, xy=xy, yaw=_wrap(heading), eor=eor)
+
+  def terrain_height(self, m: mjx.Model, xy: jax.Array) -> jax.Array:
+    """Height (m) of the heightfield of model `m` at xy (bilinear)."""
+    nrow, ncol = self._hfield
+    size = m.hfield_size[0]
+    pos = m.geom_pos[self._terrain_geom]
+    data = m.hfield_data.reshape(nrow, ncol)
+    u = jp.clip((xy[0] - pos[0] + size[0]) / (2 * size[0]) * (ncol - 1), 0, ncol - 1.001)
+    v = jp.clip((xy[1] - pos[1] + size[1]) / (2 * size[1]) * (nrow - 1), 0, nrow - 1.001)
+    j, i = jp.floor(u).astype(jp.int32), jp.floor(v).astype(jp.int32)
+    fu, fv = u - j, v - i
+    h = (data[i, j] * (1 - fu) * (1 - fv) + data[i, j + 1] * fu * (1 - fv) +
+         data[i + 1, j] * (1 - fu) * fv + data[i + 1, j + 1] * fu * fv)
+    return pos[2] + h * size[2]
+
+  def _pose_data(self, pose: dict) -> tuple[mjx.Model, mjx.Data]:
+    m = self.world_model(pose["world"])
+    z = self.terrain_height(m, pose["xy"]) + self.robot.wheel_radius + 0.01
+    qpos = self._data0.qpos.at[:3].set(jp.array([pose["xy"][0], pose["xy"][1], z]))
+    qpos = qpos.at[3:7].set(jp.array([jp.cos(pose["yaw"] / 2), 0, 0, jp.sin(pose["yaw"] / 2)]))
+    qpos = qpos.at[7:].set(0.0)
+    d = self._data0.replace(qpos=qpos, qvel=jp.zeros_like(self._data0.qvel),
+                            ctrl=jp.zeros_like(self._data0.ctrl))
+    return m, mjx.forward(m, d)
+
+  def _start(self, pose: dict, k_obs, k_next, episodes) -> State:
+    m, d = self._pose_data(pose)
+    prev_action = jp.zeros(2, jp.float32)
+    obs = self._observe(m, d, prev_action, k_obs)
+    info = dict(
+        pose=pose, rng=k_next, episodes=episodes, steps=jp.int32(0),
+        prev_action=prev_action, dist=jp.linalg.norm(d.qpos[:2] - pose["eor"]),
+        truncation=jp.float32(0), outcome=jp.int32(RUNNING), episode_return=jp.float32(0),
+        last_return=jp.float32(0), last_outcome=jp.int32(RUNNING), last_length=jp.int32(0))
+    metrics = {name: jp.float32(0) for name in OUTCOMES[1:]}
+    return State(pipeline_state=d, obs=obs, reward=jp.float32(0), done=jp.float32(0),
+                 metrics=metrics, info=info)
+
+  # ------------------------------------------------------------------ dynamics
+  def _observe(self, m, d, prev_action, key, noise_factor=None) -> dict:
+    image = depth_cam.render_depth(self.camera, m, d)
+    k = self.noise_factor if noise_factor is None else noise_factor
+    noisy = depth_cam.add_noise(image, key, self.camera, k)
+    yaw = _yaw(d.qpos[3:7])
+    return {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
+
+  def plant_clearance(self, m: mjx.Model, xy: jax.Array, yaw: jax.Array) -> jax.Array:
+    """Smallest distance (m) from the robot footprint rectangle at (xy, yaw) to a plant trunk
+    surface of world model `m` (parked slots ignored)."""
+    centre = m.geom_pos[self._trunk_ids]
+    radius = m.geom_size[self._trunk_ids, 0]
+    c, s = jp.cos(yaw), jp.sin(yaw)
+    rel = centre[:, :2] - xy
+    local = jp.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], -1)
+    half = jp.array([self.robot.length / 2, self.robot.width / 2])
+    outside = jp.maximum(jp.abs(local) - half, 0.0)
+    dist = jp.linalg.norm(outside, axis=-1) - radius
+    return jp.min(jp.where(centre[:, 2] > -50, dist, jp.inf))
+
+  def _advance(self, state: State, action: jax.Array):
+    """Physics, reward and termination of one control step, no reset. Returns the new
+    state (obs rendered after the physics) and the mask of envs to reset."""
+    env, info, pose = self.cfg.env, state.info, state.info["pose"]
+    action = jp.clip(action, self.action_low, self.action_high)
+    m = self.world_model(pose["world"])
+    ctrl = jp.stack(wheel_speeds(action[0], action[1], self.robot))
+    d = state.pipeline_state.replace(ctrl=ctrl)
+    d = jax.lax.fori_loop(0, self._nsub, lambda _, x: mjx.step(m, x), d)
+
+    finite = jp.all(jp.isfinite(d.qpos)) & jp.all(jp.isfinite(d.qvel))
+    exploded = ~finite | (jp.max(jp.abs(d.qvel[:6])) > MAX_QVEL)
+    d = jax.tree.map(lambda new, old: jp.where(exploded, old, new), d, state.pipeline_state)
+
+    xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
+    line = self.lanes.centerline[pose["world"], pose["lane"]]
+    _, tangent, lateral, _ = lane_frame(line, xy, pose["direction"])
+    dist = jp.linalg.norm(xy - pose["eor"])
+    to_eor = pose["eor"] - xy
+    phi = _wrap(jp.arctan2(to_eor[1], to_eor[0]) - yaw)
+    heading_err = _wrap(yaw - jp.arctan2(tangent[1], tangent[0]))
+    half_lane = self.lanes.inter_row[pose["world"]] / 2
+    # Past the end line: beyond the EoR along the lane's end tangent, inside the lane.
+    end_t = jp.where(pose["direction"] > 0, line[-1] - line[-2], line[0] - line[1])
+    crossed = (xy - pose["eor"]) @ end_t > 0
+
+    success = (dist < env.success_radius_m) | (crossed & (jp.abs(lateral) < half_lane))
+    collision = self.plant_clearance(m, xy, yaw) < env.collision_margin_m
+    left_lane = jp.abs(lateral) > half_lane
+    reversed_ = jp.abs(heading_err) > jp.deg2rad(env.yaw_limit_deg)
+    steps = info["steps"] + 1
+    timeout = steps >= env.max_steps
+    outcome = jp.select(
+        [exploded, success, collision, left_lane, reversed_, timeout],
+        [PHYSICS, SUCCESS, COLLISION, LEFT_LANE, REVERSED, TIMEOUT], RUNNING).astype(jp.int32)
+    sparse = jp.select(
+        [outcome == SUCCESS, (outcome == COLLISION) | (outcome == LEFT_LANE),
+         outcome == REVERSED], [env.success_reward, env.collision_reward, env.reverse_reward],
+        0.0)
+    r_heading = 1.0 - 2.0 * jp.sqrt(jp.abs(phi / jp.pi))
+    r_progress = info["dist"] - dist
+    reward = env.heading_weight * r_heading + env.progress_weight * r_progress + sparse
+    reward = jp.where(exploded, 0.0, reward)
+    done = outcome != RUNNING
+    truncation = (outcome == TIMEOUT) | (outcome == PHYSICS)
+
+    k_obs, k_next = jax.random.split(info["rng"])
+    obs = self._observe(m, d, action, k_obs)
+    ret = info["episode_return"] + reward
+    new_info = dict(info, rng=k_next, steps=steps, prev_action=action, dist=dist,
+                    truncation=truncation.astype(jp.float32), outcome=outcome,
+                    episode_return=ret,
+                    last_return=jp.where(done, ret, info["last_return"]),
+                    last_outcome=jp.where(done, outcome, info["last_outcome"]),
+                    last_length=jp.where(done, steps, info["last_length"]))
+    metrics = {name: (outcome == code).astype(jp.float32)
+               for code, name in enumerate(OUTCOMES) if code != RUNNING}
+    new = state.replace(pipeline_state=d, obs=obs, reward=reward.astype(jp.float32),
+                        done=done.astype(jp.float32), metrics=metrics, info=new_info)
+    return new, done
+
+  def _auto_reset(self, state: State, mask: jax.Array) -> State:
+    """Restarts the envs of `mask`: from their start pose, or every `pose_reset_every`
+    episodes from a new random pose."""
+    info = state.info
+    k_pose, k_obs, k_next = jax.random.split(info["rng"], 3)
+    episodes = info["episodes"] + 1
+    new_pose = episodes % self.cfg.env.pose_reset_every == 0
+    pose = jax.tree.map(lambda a, b: jp.where(new_pose, a, b), self.sample_pose(k_pose),
+                        info["pose"])
+    fresh = self._start(pose, k_obs, k_next, episodes)
+    fresh.info.update(last_return=info["last_return"], last_outcome=info["last_outcome"],
+                      last_length=info["last_length"], truncation=info["truncation"])
+    fresh = fresh.replace(reward=state.reward, done=state.done, metrics=state.metrics)
+    return jax.tree.map(lambda a, b: jp.where(mask, a, b), fresh, state)
+
+  # ------------------------------------------------------------------ batched helpers
+  def reset_batch(self, rng: jax.Array, num_envs: int) -> State:
+    """`num_envs` envs, reset with independent keys: a State with a leading env axis."""
+    return jax.vmap(self.reset)(jax.random.split(rng, num_envs))
+
+  def step_batch(self, state: State, action: jax.Array) -> tuple[State, dict]:
+    """Steps a batch of envs (leading axis) with auto-reset, also returning the
+    observation each env had before its reset (`final_obs`), for bootstrapping through
+    truncations. The reset observation is rendered only when some env finished."""
+    advanced, done = jax.vmap(self._advance)(state, action)
+    final_obs = advanced.obs
+    if not self.auto_reset:
+      return advanced, final_obs
+    new = jax.lax.cond(jp.any(done), jax.vmap(self._auto_reset), lambda s, _: s, advanced,
+                       done)
+    return new, final_obs
+
+
+def make_env(cfg: Config, **kwargs) -> VineyardEnv:
+  """The training env of a config (its pool of train worlds)."""
+  return VineyardEnv(cfg, **kwargs)
+
+
+# ---------------------------------------------------------------------- reference driver
+def pure_pursuit(env: VineyardEnv, lookahead_m: float = 1.0, speed: float | None = None
+                 ) -> Callable[[State, jax.Array], jax.Array]:
+  """A privileged pure-pursuit driver on the lane centerline, using the true pose.
+
+  Returns `policy(state, key) -> action (2,)` of one env (vmap for a batch), the signature
+  of learned policies in `mjxvine.evaluate`. It is the yardstick's yardstick: it must
+  drive every test lane.
+  """
+  v_cmd = env.cfg.env.v_max if speed is None else speed
+
+  def policy(state: State, key: jax.Array) -> jax.Array:
+    del key
+    pose = state.info["pose"]
+    d = state.pipeline_state
+    xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
+    line = env.lanes.centerline[pose["world"], pose["lane"]]
+    i, _, _, _ = lane_frame(line, xy, pose["direction"])
+    k = line.shape[0]
+    ahead = int(np.ceil(lookahead_m / (env.worlds[0].length_m / (k - 1))))
+    j = jp.clip(i + jp.where(pose["direction"] > 0, ahead, -ahead), 0, k - 1)
+    target = line[j]
+    # If the lookahead runs past the EoR, aim beyond it along the travel direction.
+    rel = target - xy
+    alpha = _wrap(jp.arctan2(rel[1], rel[0]) - yaw)
+    dist = jp.maximum(jp.linalg.norm(rel), 0.3)
+    w = 2.0 * v_cmd * jp.sin(alpha) / dist
+    v = v_cmd * jp.clip(jp.cos(alpha), 0.2, 1.0)
+    return jp.clip(jp.array([v, w]), env.action_low, env.action_high)
+
+  return policy
