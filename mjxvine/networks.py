@@ -143,6 +143,18 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
   return SACNetworks(actor, critic, low, high)
 
 
+def make_networks_from_config(cfg) -> SACNetworks:
+  """The vineyard networks of a `mjxvine.config.Config`.
+
+  Action box [0, v_max] x [-w_max, w_max]; depth scaled by 1 / camera.max_depth_m so
+  that the tower sees [0, 1]; sizes and log-std bounds from `cfg.sac`.
+  """
+  return make_networks(
+      [0.0, -cfg.env.w_max], [cfg.env.v_max, cfg.env.w_max], hidden=cfg.sac.hidden,
+      conv_features=cfg.sac.conv_features, depth_scale=1.0 / cfg.camera.max_depth_m,
+      log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max)
+
+
 def init_params(nets: SACNetworks, key: jax.Array, obs: Obs) -> tuple[Any, Any]:
   """Initialises (actor_params, critic_params) from an example observation (any batch)."""
   k1, k2 = jax.random.split(key)

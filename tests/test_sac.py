@@ -1,6 +1,6 @@
 """SAC: losses against numpy, Polyak, bootstrapping, replay buffer, exploration, learning."""
 
-import math
+import os
 
 import jax
 import jax.numpy as jnp
@@ -362,3 +362,30 @@ def test_sac_learns_point_mass():
   learned, rand = _train_toy(0)
   assert rand < -8.0
   assert learned > -3.0, (learned, rand)
+
+
+@pytest.mark.skipif(not os.environ.get("MJXVINE_SLOW_TESTS"),
+                    reason="compiles a brax env (~40 s on 2 CPU cores); set MJXVINE_SLOW_TESTS=1")
+def test_brax_env_smoke():
+  """The learner runs on a brax Env with flat vector observations (inverted pendulum)."""
+  from brax import envs
+
+  env = envs.training.wrap(envs.get_environment("inverted_pendulum"), episode_length=5)
+  n = 4
+  nets = nw.make_networks(-jnp.ones(env.action_size), jnp.ones(env.action_size), hidden=16)
+  agent = sac.make_sac(nets, SACConfig(batch_size=8, grad_steps_per_iter=2))
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), n))
+  learner = jax.jit(agent.init)(jax.random.PRNGKey(1), state.obs)
+  buffer = sac.init_buffer(state.obs, env.action_size, 64)
+  step, act, insert = jax.jit(env.step), jax.jit(agent.act), jax.jit(sac.insert)
+  for i in range(6):
+    action = act(learner.actor_params, state.obs, jax.random.PRNGKey(i))
+    nxt = step(state, action)
+    trunc = nxt.info["truncation"]
+    # Brax auto-resets: nxt.obs is then the first observation of the next episode.
+    buffer = insert(buffer, sac.Transition(state.obs, action, nxt.reward,
+                                           nxt.done * (1 - trunc), trunc, nxt.obs))
+    state = nxt
+  learner, metrics = jax.jit(agent.update_many)(learner, buffer, jax.random.PRNGKey(9))
+  assert int(learner.step) == 2
+  assert all(np.isfinite(float(v)) for v in metrics.values())
