@@ -1,0 +1,129 @@
+"""The batched vineyard environment: observation, reward, terminations, resets, NaN guard.
+
+One small env (4 envs, 16x16 depth, 20-step episodes) and its jitted functions are
+compiled once for the module."""
+
+import jax
+import jax.numpy as jp
+import numpy as np
+import pytest
+
+from mjxvine.config import load_config
+from mjxvine.env import COLLISION, LEFT_LANE, REVERSED, SUCCESS, TIMEOUT, VineyardEnv, _wrap
+
+N = 4
+
+
+@pytest.fixture(scope="module")
+def env():
+  cfg = load_config("experiments/smoke.yaml", [
+      "camera.width=16", "camera.height=12", "env.max_steps=20", "env.pose_reset_every=3",
+      "world.pool_size=2"])
+  return VineyardEnv(cfg)
+
+
+@pytest.fixture(scope="module")
+def fns(env):
+  reset_to = jax.jit(jax.vmap(env.reset_to, in_axes=(0, 0, 0, 0, 0, 0, 0)))
+  step = jax.jit(env.step_batch)
+  return reset_to, step
+
+
+def _start(fns, world=(0, 1, 0, 1), lane=(0, 1, 2, 0), direction=(1, -1, 1, -1),
+           along=(2.0,) * N, lateral=(0.0,) * N, yaw=(0.0,) * N, seed=0):
+  reset_to, _ = fns
+  a = lambda x, t=jp.float32: jp.asarray(x, t)
+  return reset_to(jax.random.split(jax.random.PRNGKey(seed), N), a(world, jp.int32),
+                  a(lane, jp.int32), a(direction), a(along), a(lateral), a(yaw))
+
+
+def test_observation_is_depth_and_state_only(env, fns):
+  s = _start(fns)
+  assert set(s.obs) == {"depth", "state"}
+  assert s.obs["depth"].shape == (N, 12, 16, 1) and s.obs["depth"].dtype == jp.float32
+  assert s.obs["state"].shape == (N, 3)
+  assert float(s.obs["depth"].min()) >= 0 and float(s.obs["depth"].max()) <= 5.0
+  # state = [v_prev, w_prev, yaw]: zero action before the first step, yaw of the pose
+  np.testing.assert_allclose(s.obs["state"][:, :2], 0.0)
+  np.testing.assert_allclose(np.cos(s.obs["state"][:, 2]), np.cos(s.info["pose"]["yaw"]),
+                             atol=0.02)
+  # forward starts head +x, reverse ones -x
+  np.testing.assert_allclose(np.cos(s.info["pose"]["yaw"]), [1, -1, 1, -1], atol=0.02)
+  # two envs in different worlds see different vineyards
+  assert not np.allclose(env.world_model(0).geom_pos, env.world_model(1).geom_pos)
+
+
+def test_reward_matches_the_paper(env, fns):
+  _, step = fns
+  s = _start(fns)
+  action = jp.tile(jp.array([[0.5, 0.2]]), (N, 1))
+  s2, _ = step(s, action)
+  d2 = s2.pipeline_state
+  xy = np.asarray(d2.qpos[:, :2])
+  q = np.asarray(d2.qpos[:, 3:7])
+  yaw = np.arctan2(2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2]**2 + q[:, 3]**2))
+  eor = np.asarray(s.info["pose"]["eor"])
+  d_prev = np.linalg.norm(np.asarray(s.pipeline_state.qpos[:, :2]) - eor, axis=1)
+  d_now = np.linalg.norm(xy - eor, axis=1)
+  phi = np.asarray(_wrap(np.arctan2(eor[:, 1] - xy[:, 1], eor[:, 0] - xy[:, 0]) - yaw))
+  expected = 0.6 * (1 - 2 * np.sqrt(np.abs(phi / np.pi))) + 35 * (d_prev - d_now)
+  np.testing.assert_allclose(s2.reward, expected, rtol=1e-4, atol=1e-4)
+  assert np.all(s2.done == 0)
+  np.testing.assert_allclose(s2.obs["state"][:, :2], action)
+  assert np.all(d_prev - d_now > 0.01)  # it drove towards the EoR (from rest)
+
+
+def test_terminations(env, fns):
+  _, step = fns
+  half = float(env.lanes.inter_row[0]) / 2
+  # env 0: yawed 90 deg -> reversed; env 1: beside the row -> left lane;
+  # env 2: on a plant -> collision; env 3: next to its EoR -> success.
+  trunk = np.asarray(env.world_model(0).geom_pos[env._trunk_ids[0]])
+  line = np.asarray(env.lanes.centerline[0, 0])
+  s = _start(fns, world=(0, 0, 0, 0), lane=(0, 0, 0, 0), direction=(1, 1, 1, 1),
+             along=(2.0, 2.0, float(trunk[0]), env.worlds[0].length_m - 0.2),
+             lateral=(0.0, half + 0.45, float(trunk[1] - np.interp(trunk[0], *line.T)), 0.0),
+             yaw=(np.pi / 2, 0.0, 0.0, 0.0))
+  s2, _ = step(s, jp.zeros((N, 2)))
+  outcome = list(np.asarray(s2.info["last_outcome"]))
+  assert outcome == [REVERSED, LEFT_LANE, COLLISION, SUCCESS]
+  np.testing.assert_allclose(s2.reward[:3], [-500, -500, -500], atol=5)
+  assert 990 < float(s2.reward[3]) < 1010
+  assert np.all(s2.done == 1) and np.all(s2.info["truncation"] == 0)
+  # the auto-reset started them again, from the same start pose
+  assert np.all(s2.info["steps"] == 0) and np.all(s2.info["episodes"] == 1)
+  np.testing.assert_allclose(s2.pipeline_state.qpos[:, :2], s.pipeline_state.qpos[:, :2],
+                             atol=1e-5)
+
+
+def test_timeout_is_a_truncation_and_poses_change_every_k_episodes(env, fns):
+  _, step = fns
+  s = _start(fns, along=(3.0,) * N)
+  starts, done_steps = [], []
+  zero = jp.zeros((N, 2))
+  for episode in range(4):
+    dones = []
+    for _ in range(20):
+      s, _ = step(s, zero)
+      dones.append(np.asarray(s.done))
+    done_steps.append(np.sum(dones, axis=0))
+    assert np.all(s.info["truncation"] == 1)
+    assert np.all(s.info["last_outcome"] == TIMEOUT)
+    starts.append(np.asarray(s.pipeline_state.qpos[:, :2]))
+  assert all(np.all(d == 1) for d in done_steps)
+  # pose_reset_every = 3: episodes 1, 2 restart at the same pose, episode 3 at a new one
+  np.testing.assert_allclose(starts[0], starts[1], atol=1e-5)
+  assert np.all(np.linalg.norm(starts[2] - starts[1], axis=1) > 1e-3)
+  np.testing.assert_allclose(starts[2], starts[3], atol=1e-5)
+
+
+def test_nan_physics_resets_only_that_env(env, fns):
+  _, step = fns
+  s = _start(fns)
+  bad = s.pipeline_state.replace(qvel=s.pipeline_state.qvel.at[1].set(jp.nan))
+  s2, _ = step(s.replace(pipeline_state=bad), jp.full((N, 2), 0.3))
+  assert np.all(np.isfinite(np.asarray(s2.pipeline_state.qpos)))
+  assert np.isfinite(np.asarray(s2.reward)).all()
+  assert list(np.asarray(s2.done)) == [0, 1, 0, 0]
+  assert float(s2.metrics["physics"][1]) == 1 and float(s2.info["truncation"][1]) == 1
+  assert float(jp.sum(s2.metrics["physics"])) == 1
