@@ -48,7 +48,7 @@ class Transition(NamedTuple):
 
 
 class LearnerState(flax.struct.PyTreeNode):
-  """All mutable learner state. Critic params carry a leading twin axis of size 2."""
+  """All mutable learner state. Critic params hold "critic0" and "critic1"."""
   actor_params: Params
   critic_params: Params
   target_critic_params: Params

@@ -23,12 +23,11 @@ def test_spec_parameter_counts(spec_nets):
   actor, critic = jax.eval_shape(lambda k: nw.init_params(spec_nets, k, _vine_obs()),
                                  jax.random.PRNGKey(0))
   assert nw.num_params(actor) == 104_100
-  # Twin critics: two independent critics stacked on axis 0, each 103,841 parameters.
-  assert all(x.shape[0] == 2 for x in jax.tree.leaves(critic))
-  one = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), critic)
-  assert nw.num_params(one) == 103_841
-  assert nw.num_params(critic) == 2 * 103_841
-  tower = one["critics"]["tower"]
+  # Twin critics: two independent critics, each 103,841 parameters.
+  assert sorted(critic) == ["critic0", "critic1"]
+  assert nw.num_params(critic["critic0"]) == nw.num_params(critic["critic1"]) == 103_841
+  one = critic["critic0"]
+  tower = one["tower"]
   assert [tower[f"conv{i}"]["kernel"].shape for i in range(4)] == [
       (3, 3, 1, 32), (3, 3, 32, 32), (3, 3, 32, 32), (3, 3, 32, 32)]
 
@@ -46,22 +45,32 @@ def test_tower_spatial_sizes():
   assert inter["__call__"][0].shape == (1, 32)
 
 
-def test_actor_critic_shapes_and_batch_dims(spec_nets):
-  obs = _vine_obs((2, 3), 32)  # the tower works on any image size and batch dims
+def test_actor_critic_shapes_and_batch_dims():
+  nets = nw.make_networks(LOW, HIGH, hidden=4, conv_features=2)  # small, to compile fast
+  obs = _vine_obs((2, 3), 33)  # the tower works on any image size >= 33 and batch dims
 
   @jax.jit
   def run(key):
-    a_params, c_params = nw.init_params(spec_nets, key, obs)
-    mean, log_std = spec_nets.actor.apply({"params": a_params}, obs)
-    q = spec_nets.critic.apply({"params": c_params}, obs, jnp.zeros((2, 3, 2)))
+    a_params, c_params = nw.init_params(nets, key, obs)
+    mean, log_std = nets.actor.apply({"params": a_params}, obs)
+    q = nets.critic.apply({"params": c_params}, obs, jnp.zeros((2, 3, 2)))
     return c_params, mean, log_std, q
 
   c_params, mean, log_std, q = run(jax.random.PRNGKey(0))
   assert mean.shape == log_std.shape == (2, 3, 2)
+  assert np.isfinite(np.asarray(mean)).all()
   assert q.shape == (2, 2, 3)
   # The two critics are independent (different initial parameters).
-  c0 = c_params["critics"]["dense0"]["kernel"]
-  assert not np.allclose(c0[0], c0[1])
+  k0, k1 = (c_params[f"critic{i}"]["dense0"]["kernel"] for i in range(2))
+  assert not np.allclose(k0, k1)
+
+
+def test_tower_rejects_too_small_images(spec_nets):
+  assert nw.tower_output_size((112, 112)) == (10, 10)
+  assert nw.tower_output_size((33, 40)) == (1, 1) and nw.tower_output_size((32, 40))[0] == 0
+  with pytest.raises(ValueError, match="too small"):
+    jax.eval_shape(lambda k: nw.init_params(spec_nets, k, _vine_obs((1,), 32)),
+                   jax.random.PRNGKey(0))
 
 
 def test_vector_observation_mlp():
