@@ -1,0 +1,257 @@
+"""Benchmarks: `python -m mjxvine.bench <sub-command> [--out FILE.json]`.
+
+Each sub-command is a function `(args, cfg) -> rows` (a list of flat dicts) registered in
+`COMMANDS` with the function that adds its own arguments; `write_results(name, rows,
+out)` prints the rows as a table and writes them to JSON together with the device, the
+JAX backend, library versions, the host's CPU count and load. Add a sub-command by
+writing those two functions and one `COMMANDS` entry.
+
+Sub-commands
+- depth: images/s of `depth.render_depth` (vmapped over a batch of robot poses in one
+  vineyard) for batch sizes 1, 16, 64, 256 (and 1024, 4096 on an accelerator) at 112x112
+  and 64x64, compile time apart, agreement with `mujoco.mj_multiRay` on one image, and
+  the ratio against the naive baseline (`mjx.ray` vmapped over every pixel; it ignores
+  heightfields and cylinders in MJX 3.x, so it renders less than we do).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from functools import partial
+from importlib import metadata
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from mjxvine import config as config_lib
+
+
+# ------------------------------------------------------------------ shared helpers
+
+def environment() -> dict:
+  """Device, backend, versions and host load: what a benchmark number depends on."""
+  versions = {}
+  for pkg in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "flax", "numpy"):
+    try:
+      versions[pkg] = metadata.version(pkg)
+    except metadata.PackageNotFoundError:
+      pass
+  dev = jax.devices()[0]
+  kind = getattr(dev, "device_kind", "")
+  if dev.platform == "cpu":
+    try:
+      with open("/proc/cpuinfo") as f:
+        kind = next(l.split(":", 1)[1].strip() for l in f if l.startswith("model name"))
+    except (OSError, StopIteration):
+      kind = platform.processor() or kind
+  return dict(device=f"{dev.platform}: {kind}",
+              devices=len(jax.devices()), backend=jax.default_backend(), versions=versions,
+              python=platform.python_version(), host=platform.node(), cpus=os.cpu_count(),
+              load_avg=os.getloadavg() if hasattr(os, "getloadavg") else None,
+              time=time.strftime("%Y-%m-%dT%H:%M:%S"))
+
+
+def write_results(name: str, rows: list[dict], out: str | None = None, **extra) -> dict:
+  """Prints `rows` as a table and, if `out` is given, writes them with `environment()`."""
+  env = environment()
+  result = dict(benchmark=name, **env, **extra, rows=rows)
+  print(f"# {name}: {env['device']} ({env['backend']}), jax {env['versions'].get('jax')}, "
+        f"mujoco {env['versions'].get('mujoco')}, load {env['load_avg']}")
+  if rows:
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    cells = [[_fmt(r.get(k, "")) for k in keys] for r in rows]
+    widths = [max(len(k), *(len(c[i]) for c in cells)) for i, k in enumerate(keys)]
+    print("  ".join(k.rjust(w) for k, w in zip(keys, widths)))
+    for c in cells:
+      print("  ".join(v.rjust(w) for v, w in zip(c, widths)))
+  for k, v in extra.items():
+    print(f"{k}: {v}")
+  if out:
+    with open(out, "w") as f:
+      json.dump(result, f, indent=1, default=_json_default)
+    print(f"wrote {out}")
+  return result
+
+
+def _fmt(v) -> str:
+  if isinstance(v, float):
+    return f"{v:.4g}" if abs(v) < 1e5 else f"{v:.0f}"
+  return str(v)
+
+
+def _json_default(o):
+  if isinstance(o, (np.generic,)):
+    return o.item()
+  if isinstance(o, np.ndarray):
+    return o.tolist()
+  raise TypeError(type(o))
+
+
+def time_call(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3) -> dict:
+  """Compile time and steady-state seconds per call (median) of a jitted `fn(*args)`."""
+  t = time.perf_counter()
+  fn = fn.lower(*args).compile()
+  compile_s = time.perf_counter() - t
+  jax.block_until_ready(fn(*args))  # warm-up
+  times, cpu, start = [], [], time.perf_counter()
+  while len(times) < min_reps or time.perf_counter() - start < min_time:
+    t, c = time.perf_counter(), time.process_time()
+    jax.block_until_ready(fn(*args))
+    times.append(time.perf_counter() - t)
+    cpu.append(time.process_time() - c)
+  return dict(compile_s=compile_s, call_s=float(np.median(times)),
+              best_s=float(np.min(times)), cpu_s=float(np.median(cpu)), reps=len(times))
+
+
+# ------------------------------------------------------------------ depth
+
+def _vineyard(cfg: config_lib.Config, seed: int):
+  """(MjModel, world) of a train vineyard of `cfg` (needs mjxvine.worlds)."""
+  from mjxvine.worlds import build_model, generate_world  # pylint: disable=import-outside-toplevel
+  world = generate_world("train", seed, cfg.world)
+  return build_model(world, cfg), world
+
+
+def random_poses(model: mujoco.MjModel, world, n: int, seed: int = 0,
+                 tilt: float = 0.05) -> list[mujoco.MjData]:
+  """`n` host MjData with the robot along random lanes, either direction, small roll and
+  pitch (rad), after `mj_forward` (no physics: the robot hovers at wheel height)."""
+  from mjxvine.worlds import ROBOTS, terrain_height  # pylint: disable=import-outside-toplevel
+  rng = np.random.default_rng(seed)
+  radius = max(r.wheel_radius for r in ROBOTS.values())
+  out = []
+  for i in range(n):
+    line = world.lanes[i % len(world.lanes)].centerline
+    x, y = line[rng.integers(len(line))]
+    yaw = rng.uniform(-0.4, 0.4) + (np.pi if i % 2 else 0.0)
+    d = mujoco.MjData(model)
+    quat = np.zeros(4)
+    mujoco.mju_euler2Quat(quat, np.array([*rng.uniform(-tilt, tilt, 2), yaw]), "xyz")
+    d.qpos[:3] = [x, y, float(terrain_height(world, x, y)) + radius + 0.02]
+    d.qpos[3:7] = quat
+    mujoco.mj_forward(model, d)
+    out.append(d)
+  return out
+
+
+def _depth_args(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--batches", default=None, help="comma-separated batch sizes "
+                 "(default 1,16,64,256; with 1024,4096 on an accelerator)")
+  p.add_argument("--sizes", default="112x112,64x64", help="comma-separated HxW")
+  p.add_argument("--baseline-batch", type=int, default=4,
+                 help="batch of the naive mjx.ray baseline (0: skip it)")
+  p.add_argument("--min-time", type=float, default=1.0, help="seconds per measurement")
+  p.add_argument("--seed", type=int, default=0)
+
+
+def bench_depth(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
+  from mjxvine import depth  # pylint: disable=import-outside-toplevel
+  accel = jax.default_backend() != "cpu"
+  batches = ([int(b) for b in args.batches.split(",")] if args.batches else
+             [1, 16, 64, 256] + ([1024, 4096] if accel else []))
+  rows = []
+  for size in args.sizes.split(","):
+    h, w = (int(v) for v in size.lower().split("x"))
+    c = config_lib.replace(cfg, camera={"height": h, "width": w})
+    model, world = _vineyard(c, args.seed)
+    cam = depth.DepthCamera.create(model, c.camera)
+    mx = mjx.put_model(model)
+    pool = random_poses(model, world, 64, args.seed)
+    template = mjx.put_data(model, pool[0])
+    fields = ("cam_xpos", "cam_xmat", "geom_xpos", "geom_xmat")
+    stacked = {f: np.stack([getattr(dd, f) for dd in pool]) for f in fields}
+    for f in ("cam_xmat", "geom_xmat"):
+      stacked[f] = stacked[f].reshape(len(pool), -1, 3, 3)
+
+    def batch(b):
+      return tuple(jp.asarray(np.resize(stacked[f], (b,) + stacked[f].shape[1:]), jp.float32)
+                   for f in fields)
+
+    def vmapped(fn):
+      # The model is closed over (batch-constant) and only the pose-dependent arrays of
+      # mjx.Data are passed, so that the host-side pytree handling of a full mjx.Data
+      # does not enter the timing (inside a training step it does not exist either).
+      def one(*xs):
+        return fn(mx, template.replace(**dict(zip(fields, xs))))
+      return jax.jit(jax.vmap(one))
+
+    render = vmapped(partial(depth.render_depth, cam))
+    # Agreement with MuJoCo's C ray caster on the first pose (a sanity check).
+    img = np.asarray(render(*batch(1))[0])
+    ref = depth.reference_depth(model, pool[0], cam)
+    agree = float(np.mean(np.abs(img - ref) < 0.01))
+    base = None
+    if args.baseline_batch > 0:
+      rays = jp.asarray(cam.pixel_rays().reshape(-1, 3))
+
+      def naive(m, d):
+        o, rot = d.cam_xpos[cam.cam_id], d.cam_xmat[cam.cam_id]
+        dist, _ = jax.vmap(lambda v: mjx.ray(m, d, o, rot @ v, geomgroup=(1, 1, 0, 0, 0, 0)))(rays)
+        return jp.where(dist < 0, cam.max_depth, jp.minimum(dist, cam.max_depth)).reshape(h, w)
+
+      bb = args.baseline_batch
+      base = time_call(vmapped(naive), *batch(bb), min_time=args.min_time, min_reps=2)
+      base_ips = bb / base["call_s"]
+      rows.append(dict(size=f"{h}x{w}", impl="mjx.ray (naive)", batch=bb, images_per_s=base_ips,
+                       ms_per_image=1e3 * base["call_s"] / bb,
+                       cpu_ms_per_image=1e3 * base["cpu_s"] / bb, compile_s=base["compile_s"]))
+    for b in batches:
+      r = time_call(render, *batch(b), min_time=args.min_time)
+      ips = b / r["call_s"]
+      row = dict(size=f"{h}x{w}", impl="depth.render_depth", batch=b, images_per_s=ips,
+                 ms_per_image=1e3 * r["call_s"] / b, cpu_ms_per_image=1e3 * r["cpu_s"] / b,
+                 compile_s=r["compile_s"])
+      if base is not None and b == args.baseline_batch:
+        row["vs_naive"] = ips / base_ips
+      rows.append(row)
+    if base is not None and args.baseline_batch not in batches:
+      r = time_call(render, *batch(args.baseline_batch), min_time=args.min_time)
+      rows.append(dict(size=f"{h}x{w}", impl="depth.render_depth", batch=args.baseline_batch,
+                       images_per_s=args.baseline_batch / r["call_s"],
+                       ms_per_image=1e3 * r["call_s"] / args.baseline_batch,
+                       cpu_ms_per_image=1e3 * r["cpu_s"] / args.baseline_batch,
+                       compile_s=r["compile_s"],
+                       vs_naive=(args.baseline_batch / r["call_s"]) / base_ips))
+    for row in rows:
+      if row["size"] == f"{h}x{w}" and "agree_1cm" not in row:
+        row["agree_1cm"] = agree
+  return rows
+
+
+# ------------------------------------------------------------------ CLI
+
+# name -> (run(args, cfg) -> rows, add_arguments(parser), one-line help)
+COMMANDS: dict[str, tuple[Callable[[argparse.Namespace, Any], list[dict]],
+                          Callable[[argparse.ArgumentParser], None], str]] = {
+    "depth": (bench_depth, _depth_args, "depth camera images/s vs batch and size"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+  parser = argparse.ArgumentParser(prog="python -m mjxvine.bench", description=__doc__,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+  sub = parser.add_subparsers(dest="command", required=True)
+  for name, (_, add_args, doc) in COMMANDS.items():
+    p = sub.add_parser(name, help=doc)
+    p.add_argument("--out", default=None, help="write the results to this JSON file")
+    config_lib.add_config_args(p)
+    add_args(p)
+  args = parser.parse_args(argv)
+  cfg = config_lib.config_from_args(args)
+  run, _, _ = COMMANDS[args.command]
+  rows = run(args, cfg)
+  write_results(args.command, rows, args.out, config_hash=config_lib.config_hash(cfg))
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
