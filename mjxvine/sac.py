@@ -141,9 +141,16 @@ class SAC(NamedTuple):
   act_deterministic: Callable
 
 
-def make_sac(nets: nw.SACNetworks, cfg: SACConfig) -> SAC:
-  """Builds the SAC learner for `nets` with hyper-parameters `cfg`."""
+def make_sac(nets: nw.SACNetworks, cfg: SACConfig, unroll: int | bool | None = None) -> SAC:
+  """Builds the SAC learner for `nets` with hyper-parameters `cfg`.
+
+  unroll: `lax.scan` unroll of `update_many`. None: fully unrolled on the CPU backend
+  when grad_steps_per_iter <= 16 (XLA:CPU runs convolutions inside a loop body ~20x
+  slower, jax-ml/jax#12868), else 1 (a rolled loop: fast compiles on GPU).
+  """
   opt = optax.adam(cfg.learning_rate)
+  if unroll is None:
+    unroll = jax.default_backend() == "cpu" and cfg.grad_steps_per_iter <= 16
 
   def init(key: jax.Array, obs: Obs) -> LearnerState:
     actor_params, critic_params = nw.init_params(nets, key, obs)
@@ -193,7 +200,8 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig) -> SAC:
     def body(st, k):
       k_sample, k_update = jax.random.split(k)
       return update(st, sample(buffer, k_sample, cfg.batch_size), k_update)
-    state, metrics = jax.lax.scan(body, state, jax.random.split(key, cfg.grad_steps_per_iter))
+    state, metrics = jax.lax.scan(body, state, jax.random.split(key, cfg.grad_steps_per_iter),
+                                  unroll=unroll)
     return state, jax.tree.map(jnp.mean, metrics)
 
   def act(actor_params: Params, obs: Obs, key: jax.Array) -> jax.Array:
