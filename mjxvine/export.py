@@ -78,7 +78,8 @@ def export_actor(actor_params: Any, path: str | Path, meta: dict) -> Path:
   path = Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
   with open(path, "wb") as f:  # a file object: numpy adds no ".npz" suffix
-    np.savez(f, **arrays, **{META_KEY: np.array(json.dumps(full))})
+    text = json.dumps(full, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    np.savez(f, **arrays, **{META_KEY: np.array(text)})
   return path
 
 
