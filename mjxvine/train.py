@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import json
 import math
 import sys
@@ -31,7 +32,8 @@ import numpy as np
 
 from mjxvine import networks as nw
 from mjxvine import sac as sac_lib
-from mjxvine.config import Config, add_config_args, config_from_args, load_config, to_yaml
+from mjxvine.config import (Config, add_config_args, config_from_args, load_config, replace,
+                            to_yaml)
 from mjxvine.env import SUCCESS, VineyardEnv
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "default.yaml"
@@ -111,10 +113,28 @@ def make_trainer(cfg: Config, env: VineyardEnv):
     w = learning / jp.maximum(learning.sum(), 1.0)
     out = {k: jp.sum(v * w) for k, v in metrics.items()}
     out["eps"] = jp.mean(ts.eps)
+    out["alpha"] = jp.exp(ts.learner.log_alpha)
     out["finite"] = _all_finite(ts.learner)
     return ts, out
 
   return sac, init, chunk
+
+
+@functools.lru_cache(maxsize=4)
+def _compiled(cfg: Config, seeds: int):
+  env = VineyardEnv(cfg)
+  sac, init, chunk = make_trainer(cfg, env)
+  if seeds == 1:
+    return sac, jax.jit(lambda k: init(k[0])), jax.jit(chunk)
+  return sac, jax.jit(jax.vmap(init)), jax.jit(jax.vmap(chunk))
+
+
+def compiled_trainer(cfg: Config, seeds: int = 1):
+  """(sac, init(keys (seeds, 2)), chunk) jitted, cached per process on everything that
+  shapes the compiled program (so a resume in the same process does not recompile)."""
+  return _compiled(replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
+                                       "save_replay": False},
+                           eval={"runs_after_train": 0}), seeds)
 
 
 def _zero_metrics(sac, learner, buffer, key):
@@ -246,14 +266,8 @@ def train(cfg: Config, run_dir: Path, *, seeds: int = 1, resume: bool = False,
   """Trains (or resumes) a run; returns the final log row of seed 0."""
   run_dir.mkdir(parents=True, exist_ok=True)
   (run_dir / "config.yaml").write_text(to_yaml(cfg))
-  env = VineyardEnv(cfg)
-  sac, init, chunk = make_trainer(cfg, env)
-  keys = jax.random.split(jax.random.PRNGKey(cfg.train.seed), seeds)
-  if seeds == 1:
-    init_fn, chunk_fn = jax.jit(lambda k: init(k[0])), jax.jit(chunk)
-  else:
-    init_fn, chunk_fn = jax.jit(jax.vmap(init)), jax.jit(jax.vmap(chunk))
-  ts = init_fn(keys)
+  sac, init_fn, chunk_fn = compiled_trainer(cfg, seeds)
+  ts = init_fn(jax.random.split(jax.random.PRNGKey(cfg.train.seed), seeds))
   nbytes = sac_lib.buffer_nbytes(ts.buffer)
   ckpt = Checkpoints(run_dir, cfg.train.save_replay)
   chunk_index = 0

@@ -1,0 +1,112 @@
+"""Training runs end to end on a tiny config: logs, checkpoints, resume (also after a
+corrupt checkpoint), non-finite detection. The jitted trainer is compiled once (cached
+per process on the config)."""
+
+import json
+import shutil
+
+import jax
+import jax.numpy as jp
+import numpy as np
+import pytest
+
+from mjxvine import train as train_mod
+from mjxvine.config import load_config
+
+OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=2", "env.max_steps=30",
+             "sac.batch_size=16", "sac.buffer_size=512", "sac.warmup_steps=40",
+             "sac.hidden=16", "sac.conv_features=4", "train.iters_per_chunk=10",
+             "train.checkpoint_every_chunks=1", "world.pool_size=1",
+             "world.train_length_m=6", "eval.runs_after_train=0"]
+
+
+def _cfg(steps):
+  return load_config("experiments/smoke.yaml", OVERRIDES + [f"train.total_env_steps={steps}"])
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory):
+  run = tmp_path_factory.mktemp("run")
+  row = train_mod.train(_cfg(80), run, quiet=True, evaluate_at_end=False)
+  return run, row
+
+
+def test_run_writes_logs_checkpoints_and_curve(first_run):
+  run, row = first_run
+  rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+  assert [r["env_steps"] for r in rows] == [20, 40, 60, 80]
+  for key in ("episodes", "return_mean", "success_rate", "actor_loss", "critic_loss", "alpha",
+              "sps", "eps"):
+    assert key in rows[-1]
+  # learning starts after the warm-up: losses are zero before, real after
+  assert rows[0]["critic_loss"] == 0 and rows[-1]["critic_loss"] > 0
+  assert rows[-1]["alpha"] == pytest.approx(0.2)
+  assert list((run / "tb").glob("events.out.tfevents.*"))
+  assert (run / "learning_curve.png").stat().st_size > 5000
+  assert sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())[-1] == 4
+  assert load_config(run / "config.yaml") == _cfg(80)
+
+
+def test_resume_continues_and_survives_a_corrupt_checkpoint(first_run, tmp_path, capsys):
+  run, _ = first_run
+  copy = tmp_path / "copy"
+  shutil.copytree(run, copy)
+  # corrupt the newest checkpoint: the resume must fall back to the previous one
+  newest = copy / "checkpoints" / "4"
+  for f in newest.rglob("*"):
+    if f.is_file() and f.stat().st_size > 0 and "ocdbt" not in f.name:
+      f.write_bytes(b"garbage")
+  row = train_mod.train(_cfg(120), copy, resume=True, quiet=True, evaluate_at_end=False)
+  err = capsys.readouterr().err
+  assert "checkpoint 4 is corrupt" in err and "resumed" in err
+  rows = [json.loads(l) for l in (copy / "metrics.jsonl").read_text().splitlines()]
+  # chunks 1-4 of the first run, then 4-6 again from the checkpoint of chunk 3
+  assert [r["env_steps"] for r in rows][4:] == [80, 100, 120]
+  assert row["env_steps"] == 120
+
+
+def test_resume_with_replay_is_exact(tmp_path):
+  """With the replay saved, a run of 4 chunks and a run of 2 chunks resumed to 4 end in
+  the same learner (the resume loses nothing)."""
+  runs = {}
+  for name, budgets in (("straight", (80,)), ("resumed", (40, 80))):
+    run = tmp_path / name
+    for i, steps in enumerate(budgets):
+      cfg = load_config("experiments/smoke.yaml",
+                        OVERRIDES + [f"train.total_env_steps={steps}", "train.save_replay=true"])
+      train_mod.train(cfg, run, resume=i > 0, quiet=True, evaluate_at_end=False)
+    runs[name] = run
+  sac, init_fn, _ = train_mod.compiled_trainer(_cfg(80))
+  template = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
+  (_, a), (_, b) = (train_mod.Checkpoints(runs[n], True).restore(template) for n in runs)
+  assert int(a.env_steps) == int(b.env_steps) == 80
+  for x, y in zip(jax.tree.leaves(a.learner), jax.tree.leaves(b.learner)):
+    np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+
+
+def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
+  real = train_mod.compiled_trainer
+
+  def poisoned(cfg, seeds=1):
+    sac, init_fn, chunk_fn = real(cfg, seeds)
+
+    def chunk(ts):
+      ts, m = chunk_fn(ts)
+      if int(ts.env_steps) >= 40:  # the second chunk goes bad
+        ts = ts.replace(learner=ts.learner.replace(
+            actor_params=jax.tree.map(lambda x: x * jp.nan, ts.learner.actor_params)))
+        m = dict(m, finite=jp.asarray(False))
+      return ts, m
+    return sac, init_fn, chunk
+
+  monkeypatch.setattr(train_mod, "compiled_trainer", poisoned)
+  with pytest.raises(train_mod.NonFiniteError, match="non-finite parameters at env step 40"):
+    train_mod.train(_cfg(80), tmp_path / "nan", quiet=True, evaluate_at_end=False)
+  # the checkpoint of the last good chunk is kept
+  assert (tmp_path / "nan" / "checkpoints" / "1").is_dir()
+  assert not (tmp_path / "nan" / "checkpoints" / "2").exists()
+
+
+def test_cli_refuses_bad_resume(tmp_path):
+  with pytest.raises(SystemExit, match="no config.yaml"):
+    train_mod.main(["--resume", str(tmp_path)])
