@@ -71,7 +71,8 @@ def make_trainer(cfg: Config, env: VineyardEnv):
     env_state = env.reset_batch(k_env, n)
     learner = sac.init(k_learner, env_state.obs)
     buffer = sac_lib.init_buffer(env_state.obs, env.action_size, cfg.sac.buffer_size,
-                                 cfg.camera.max_depth_m)
+                                 cfg.camera.max_depth_m,
+                                 depth_dtype=jp.dtype(cfg.sac.replay_depth_dtype))
     z = jp.zeros((), jp.int32)
     return TrainState(learner=learner, buffer=buffer, env_state=env_state,
                       eps=jp.full((n,), cfg.sac.eps_start, jp.float32), key=k_run,
