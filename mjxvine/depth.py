@@ -6,6 +6,8 @@ function vmaps with `in_axes=(model_axes, 0)`) and `d` an `mjx.Data` after `mjx.
 or `mjx.step` (it reads `cam_xpos`, `cam_xmat`, `geom_xpos`, `geom_xmat`). Everything
 static (geom ids, pixel rays, sizes of work arrays) lives in a `DepthCamera`, built once
 from the host `mujoco.MjModel` by `DepthCamera.create(mj_model, camera_cfg)`.
+`render_depth_batch` renders a batch in chunks (faster on CPU), `add_noise` applies the
+SPEC's noise, `reference_depth` is the same image by MuJoCo's C `mj_multiRay`.
 
 Conventions
 - Pixel (r, c): r = 0 is the top row, c = 0 the leftmost column. Its ray passes through the
@@ -23,21 +25,30 @@ Conventions
 
 Algorithm (cost grows with what is in view, not with the vineyard's size)
 1. Primitives: every seen geom is one or more quadric primitives (a capsule is a
-   cylinder plus two spheres). Each gets its world AABB and that box's projection into
-   the image (conservative: the whole image if a corner is behind the camera). Those
-   outside the view or nearer than nothing within `max_depth` are dropped, and the
-   `max_prims` nearest of the rest are kept (`lax.top_k`).
+   cylinder plus two spheres). Each gets its world AABB; a box whose 8 corners all lie
+   outside one plane of the view frustum (cut at max_depth) is dropped, and of the rest
+   the `max_prims` nearest are kept (`lax.top_k`). Their image boxes are the bounds of
+   the projected corners (the whole image if a corner is behind the camera).
 2. Tiles: the image is cut into tiles of `tile` pixels; each tile keeps the
    `tile_slots` nearest kept primitives whose image box overlaps it. Every pixel of the
    tile is then intersected analytically (same formulas as MuJoCo's `ray_ellipsoid`,
-   `ray_cylinder`, ...) with those slots only. The image box is conservative, so this
-   culling is exact unless a list overflows; `render_depth_info` reports overflows.
-3. Terrain: for every image column, the plane that holds its rays is sampled at
-   `terrain_samples` z-depths up to `max_depth`; the ground's elevation angle in that
-   plane, with a running maximum, gives for each pixel the bracket of its first ground
-   hit (a heightfield renderer in the style of "voxel space"). The hit is then solved
-   exactly against MuJoCo's triangulation (each cell (r, c) split along the diagonal from
-   vertex (r, c) to (r+1, c+1)) with two ray-plane iterations.
+   `ray_cylinder`, `ray_sphere`) with those slots only. Image boxes are conservative, so
+   this culling is exact unless a list overflows: `render_depth_info` reports that.
+3. Terrain: the rays of an image column lie in one plane through the camera. That plane
+   is sampled at `terrain_samples` z-depths up to max_depth; the running maximum of the
+   ground's elevation angle (a horizon, as in "voxel space" heightfield renderers) gives
+   each pixel the bracket of its first ground hit, through a histogram of the rows each
+   sample covers. The hit is then solved against the plane of the MuJoCo triangle under
+   the interpolated estimate (each cell (r, c) split along its diagonal from vertex
+   (r, c) to (r+1, c+1), as `mj_rayHfield`), `terrain_refine` times. The heightfield's
+   side walls are not modelled: they cannot be seen from above the terrain inside its
+   footprint.
+
+Cost: about 0.6-0.9 CPU-ms per 112x112 image on a 2.8 GHz Xeon core (batches of 16-64),
+some 50-130x the naive `mjx.ray` over all pixels, which moreover skips cylinders and
+heightfields (`python -m mjxvine.bench depth`). XLA:CPU fuses aggressively, and several
+formulations below (written-out sums, a scan, a separate min over slots) are chosen to
+keep it from repeating gathers or fusing transposes into the per-pixel kernels.
 
 Accuracy against `mujoco.mj_multiRay` (tests/test_depth.py): at least 99.5 % of pixels
 within 1 cm, and none off by more than 5 cm except at silhouette edges, defined as pixels
@@ -55,6 +66,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from functools import partial
 from typing import Any
 
 import jax
@@ -456,6 +468,32 @@ def render_depth(cam: DepthCamera, m: mjx.Model, d: mjx.Data) -> jax.Array:
   return render_depth_info(cam, m, d)[0]
 
 
+def render_depth_batch(cam: DepthCamera, m: mjx.Model, d: mjx.Data, model_axes: Any = None,
+                       chunk: int | None = 16) -> jax.Array:
+  """Noise-free images (B, H, W) of a batch: `d` with a leading batch axis B and `m`
+  either shared (model_axes None) or batched as `model_axes` (0 / None per leaf, as from
+  `worlds.batch_models`).
+
+  Renders `chunk` images at a time (`lax.map`): on CPU this keeps XLA's intermediates
+  in cache (measured 0-20 % faster per image than one vmap over 64-256 images, on a
+  busy 2-core machine); chunk=None is one plain vmap (the choice on a GPU).
+  """
+  if model_axes is None:
+    model_axes = jax.tree.map(lambda _: None, m)
+  is_none = lambda x: x is None  # noqa: E731
+  if chunk is None:
+    return jax.vmap(partial(render_depth, cam), in_axes=(model_axes, 0))(m, d)
+  part = jax.tree.map(lambda x, a: None if a is None else x, m, model_axes, is_leaf=is_none)
+
+  def one(xs):
+    mb, db = xs
+    full = jax.tree.map(lambda x, y, a: x if a is None else y, m, mb, model_axes,
+                        is_leaf=is_none)
+    return render_depth(cam, full, db)
+
+  return jax.lax.map(one, (part, d), batch_size=chunk)
+
+
 def _noise_params(cfg_or_params: Any) -> tuple[float, float, float, float]:
   """(max_depth, sigma, clip, factor) from a CameraConfig, a DepthCamera or a dict."""
   if isinstance(cfg_or_params, CameraConfig):
@@ -520,5 +558,5 @@ def reference_depth(model: mujoco.MjModel, data: mujoco.MjData, cam: DepthCamera
   return np.minimum(z, cam.max_depth).reshape(cam.height, cam.width)
 
 
-__all__ = ["DepthCamera", "render_depth", "render_depth_info", "add_noise", "quantize_depth",
-           "dequantize_depth", "reference_depth"]
+__all__ = ["DepthCamera", "render_depth", "render_depth_info", "render_depth_batch", "add_noise",
+           "quantize_depth", "dequantize_depth", "reference_depth"]

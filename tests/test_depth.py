@@ -192,6 +192,8 @@ def test_batched_worlds_vmap(synth):
   dx = jax.tree.map(lambda *x: jp.stack(x), *[mjx.put_data(m, d) for m, d in zip(models, datas)])
   imgs = jax.jit(jax.vmap(partial(depth.render_depth, cam), in_axes=(in_axes, 0)))(batched, dx)
   assert imgs.shape == (3, cam.height, cam.width) and imgs.dtype == jp.float32
+  chunked = jax.jit(partial(depth.render_depth_batch, cam, model_axes=in_axes, chunk=2))
+  np.testing.assert_allclose(chunked(batched, dx), imgs, atol=1e-5)
   for img, m, d in zip(imgs, models, datas):
     frac, bad, _ = compare(img, depth.reference_depth(m, d, cam))
     assert frac >= 0.995 and bad == 0
