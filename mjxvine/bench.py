@@ -7,6 +7,8 @@ JAX backend, library versions, the host's CPU count and load. Add a sub-command 
 writing those two functions and one `COMMANDS` entry.
 
 Sub-commands
+- physics: env-steps/s of the batched MJX physics alone (0.1 s control steps).
+- env: env-steps/s of the whole env step at the config's image size.
 - depth: images/s of `depth.render_depth` (vmapped over a batch of robot poses in one
   vineyard) for batch sizes 1, 16, 64, 256 (and 1024, 4096 on an accelerator) at 112x112
   and 64x64, compile time apart, agreement with `mujoco.mj_multiRay` on one image, and
@@ -246,12 +248,78 @@ def bench_depth(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   return rows
 
 
+# ------------------------------------------------------------------ physics and env
+
+def _sizes(args) -> list[int]:
+  if args.sizes:
+    return [int(x) for x in args.sizes.split(",")]
+  return [1, 16, 64, 256] + ([1024, 4096, 16384] if jax.default_backend() != "cpu" else [])
+
+
+def _env_args(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--sizes", default=None, help="comma-separated env counts (default "
+                 "1,16,64,256, plus 1024,4096,16384 on an accelerator)")
+  p.add_argument("--steps", type=int, default=10, help="control steps per timed call")
+
+
+def _env_setup(cfg, n: int):
+  from mjxvine.env import VineyardEnv  # pylint: disable=import-outside-toplevel
+  env = VineyardEnv(cfg)
+  state = jax.jit(lambda k: env.reset_batch(k, n))(jax.random.PRNGKey(0))
+  action = jp.tile(jp.array([[0.3, 0.1]], jp.float32), (n, 1))
+  return env, state, action
+
+
+def bench_physics(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
+  """Env-steps/s of the batched MJX physics alone: one 0.1 s control step = the wheel
+  commands and control_dt / physics_dt `mjx.step`s, each env in its own pool world."""
+  from mjxvine.worlds import wheel_speeds  # pylint: disable=import-outside-toplevel
+  rows = []
+  for n in _sizes(args):
+    env, state, action = _env_setup(cfg, n)
+    nsub = env._nsub  # pylint: disable=protected-access
+
+    def one(d, world, a):
+      m = env.world_model(world)
+      d = d.replace(ctrl=jp.stack(wheel_speeds(a[0], a[1], env.robot)))
+      return jax.lax.fori_loop(0, nsub, lambda _, x: mjx.step(m, x), d)
+
+    def run(d, worlds, a):
+      step = jax.vmap(one)
+      return jax.lax.fori_loop(0, args.steps, lambda _, x: step(x, worlds, a), d)
+
+    t = time_call(jax.jit(run), state.pipeline_state, state.info["pose"]["world"], action)
+    rows.append(dict(envs=n, substeps=nsub, env_steps_per_s=n * args.steps / t["call_s"],
+                     compile_s=t["compile_s"], cpu_ms_per_env_step=1e3 * t["cpu_s"] /
+                     (n * args.steps)))
+  return rows
+
+
+def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
+  """Env-steps/s of the whole env step (physics, depth image and noise, reward,
+  terminations, auto-reset) at the config's image size."""
+  rows = []
+  for n in _sizes(args):
+    env, state, action = _env_setup(cfg, n)
+
+    def run(s, a):
+      return jax.lax.fori_loop(0, args.steps, lambda _, x: env.step_batch(x, a)[0], s)
+
+    t = time_call(jax.jit(run), state, action)
+    rows.append(dict(envs=n, image=f"{cfg.camera.height}x{cfg.camera.width}",
+                     env_steps_per_s=n * args.steps / t["call_s"], compile_s=t["compile_s"],
+                     cpu_ms_per_env_step=1e3 * t["cpu_s"] / (n * args.steps)))
+  return rows
+
+
 # ------------------------------------------------------------------ CLI
 
 # name -> (run(args, cfg) -> rows, add_arguments(parser), one-line help)
 COMMANDS: dict[str, tuple[Callable[[argparse.Namespace, Any], list[dict]],
                           Callable[[argparse.ArgumentParser], None], str]] = {
     "depth": (bench_depth, _depth_args, "depth camera images/s vs batch and size"),
+    "physics": (bench_physics, _env_args, "MJX physics env-steps/s vs number of envs"),
+    "env": (bench_env, _env_args, "whole env step (physics + depth + reward) env-steps/s"),
 }
 
 

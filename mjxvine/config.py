@@ -125,7 +125,10 @@ class SACConfig:
 class TrainConfig:
   seed: int = _f(0, 0, 2**31 - 1)
   total_env_steps: int = _f(1_050_000, 1, 1 << 40)
-  iters_per_chunk: int = _f(100, 1, 1 << 20, doc="iterations per lax.scan between host logs")
+  iters_per_chunk: int = _f(100, 1, 1 << 20, doc="iterations per chunk between host logs")
+  chunk_loop: str = _f("auto", choices=("auto", "scan", "host"),
+                       doc="a chunk as one lax.scan, or a host loop of jitted iterations "
+                       "(auto: host on CPU, where convs in loops are slow)")
   checkpoint_every_chunks: int = _f(10, 1, 1 << 20)
   save_replay: bool = _f(False)
   num_seeds: int = _f(1, 1, 1024)

@@ -5,8 +5,8 @@
   python -m mjxvine.train --config experiments/fast.yaml --seeds 4
 
 One training iteration (N env steps with exploration, one replay insert, G gradient steps)
-is one jit-compiled function; `train.iters_per_chunk` of them run under `lax.scan`; the
-host only logs, checkpoints and checks for non-finite values between chunks. `--seeds K`
+is one jit-compiled function; `train.iters_per_chunk` of them run under `lax.scan` (on
+the CPU backend a host loop of the jitted iteration, see `_scan_chunks`); the host only logs, checkpoints and checks for non-finite values between chunks. `--seeds K`
 vmaps the whole training state over K seeds (same config, one compiled program).
 
 Run directory: config.yaml (resolved), metrics.jsonl, TensorBoard events (tb/),
@@ -60,7 +60,8 @@ class NonFiniteError(RuntimeError):
 
 
 def make_trainer(cfg: Config, env: VineyardEnv):
-  """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics))."""
+  """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
+  iteration(TrainState, None) -> (TrainState, metrics), summarize)."""
   n = cfg.env.num_envs
   nets = nw.make_networks_from_config(cfg)
   sac = sac_lib.make_sac(nets, cfg.sac)
@@ -79,7 +80,10 @@ def make_trainer(cfg: Config, env: VineyardEnv):
                       env_steps=z, episodes=z, log_episodes=z, log_return=jp.zeros(()),
                       log_success=z)
 
-  def iteration(ts: TrainState, _):
+  def iteration(ts: TrainState, _, learn_now: bool | None = None):
+    """One iteration. `learn_now` None decides on device (lax.cond); True/False is a
+    static decision made by the host (the CPU path: XLA runs convolutions inside a
+    conditional or loop body slowly on CPU)."""
     key, k_act, k_explore, k_update = jax.random.split(ts.key, 4)
     obs = ts.env_state.obs
     policy_action = sac.act(ts.learner.actor_params, obs, k_act)
@@ -94,9 +98,15 @@ def make_trainer(cfg: Config, env: VineyardEnv):
                             truncated=truncated.astype(jp.float32), next_obs=final_obs)
     buffer = sac_lib.insert(ts.buffer, tr)
     learn = (ts.env_steps + n >= warmup) & (sac_lib.num_sampleable(buffer) >= cfg.sac.batch_size)
-    learner, metrics = jax.lax.cond(
-        learn, lambda: sac.update_many(ts.learner, buffer, k_update),
-        lambda: (ts.learner, _zero_metrics(sac, ts.learner, buffer, k_update)))
+    if learn_now is None:
+      learner, metrics = jax.lax.cond(
+          learn, lambda: sac.update_many(ts.learner, buffer, k_update),
+          lambda: (ts.learner, _zero_metrics(sac, ts.learner, buffer, k_update)))
+    elif learn_now:
+      learner, metrics = sac.update_many(ts.learner, buffer, k_update)
+    else:
+      learner, metrics = ts.learner, _zero_metrics(sac, ts.learner, buffer, k_update)
+      learn = jp.zeros((), bool)
     metrics["learning"] = learn.astype(jp.float32)
     success = done & (env_state.info["last_outcome"] == SUCCESS)
     ts = ts.replace(
@@ -108,8 +118,9 @@ def make_trainer(cfg: Config, env: VineyardEnv):
         log_success=ts.log_success + success.sum())
     return ts, metrics
 
-  def chunk(ts: TrainState):
-    ts, metrics = jax.lax.scan(iteration, ts, None, cfg.train.iters_per_chunk)
+  def summarize(ts: TrainState, metrics: dict):
+    """Chunk metrics: losses averaged over the iterations that learned."""
+    metrics = dict(metrics)
     learning = metrics.pop("learning")
     w = learning / jp.maximum(learning.sum(), 1.0)
     out = {k: jp.sum(v * w) for k, v in metrics.items()}
@@ -118,16 +129,51 @@ def make_trainer(cfg: Config, env: VineyardEnv):
     out["finite"] = _all_finite(ts.learner)
     return ts, out
 
-  return sac, init, chunk
+  def chunk(ts: TrainState):
+    return summarize(*jax.lax.scan(iteration, ts, None, cfg.train.iters_per_chunk))
+
+  return sac, init, chunk, iteration, summarize
+
+
+def _scan_chunks(cfg: Config) -> bool:
+  """Whether a chunk runs as one `lax.scan` program. On XLA's CPU backend convolutions
+  inside a loop run ~20-100x slower (jax-ml/jax#12868), so there the host loops over the
+  jitted iteration instead; accelerators scan."""
+  if cfg.train.chunk_loop == "auto":
+    return jax.default_backend() != "cpu"
+  return cfg.train.chunk_loop == "scan"
 
 
 @functools.lru_cache(maxsize=4)
 def _compiled(cfg: Config, seeds: int):
   env = VineyardEnv(cfg)
-  sac, init, chunk = make_trainer(cfg, env)
-  if seeds == 1:
-    return sac, jax.jit(lambda k: init(k[0])), jax.jit(chunk)
-  return sac, jax.jit(jax.vmap(init)), jax.jit(jax.vmap(chunk))
+  sac, init, chunk, iteration, summarize = make_trainer(cfg, env)
+  batch = (lambda f: f) if seeds == 1 else jax.vmap
+  init_fn = jax.jit(lambda k: init(k[0])) if seeds == 1 else jax.jit(jax.vmap(init))
+  # Donating the state lets XLA update the replay buffer in place instead of copying it.
+  if _scan_chunks(cfg):
+    return sac, init_fn, jax.jit(batch(chunk), donate_argnums=0)
+  step_fns = {learn: jax.jit(batch(functools.partial(iteration, learn_now=learn)),
+                            donate_argnums=0) for learn in (False, True)}
+  summarize_fn = jax.jit(batch(summarize))
+  n = cfg.env.num_envs
+
+  def host_chunk(ts):
+    rows = []
+    steps = int(np.max(jax.device_get(ts.env_steps)))
+    for _ in range(cfg.train.iters_per_chunk):
+      # the same rule as on device: past the warm-up, and a full batch in the replay
+      inserted = steps // n + 1
+      sampleable = (min(inserted, cfg.sac.buffer_size // n) - 1) * n
+      learn = steps + n >= cfg.sac.warmup_steps and sampleable >= cfg.sac.batch_size
+      ts, m = step_fns[learn](ts, None)
+      steps += n
+      rows.append(m)
+    # iterations axis after the seeds axis, if any
+    stacked = jax.tree.map(lambda *x: jp.stack(x, axis=0 if seeds == 1 else 1), *rows)
+    return summarize_fn(ts, stacked)
+
+  return sac, init_fn, host_chunk
 
 
 def compiled_trainer(cfg: Config, seeds: int = 1):
