@@ -17,6 +17,9 @@ Sub-commands
   above 16 are also timed in chunks of 16 (`depth.render_depth_batch`). Each row gives
   wall-clock images/s and CPU ms per image (all threads): on a shared machine the latter
   is the steadier number.
+- deploy: single-decision latency (median, p99 over 1,000 calls) of the exported actor
+  (random weights, config image size) with `NumpyPolicy` and onnxruntime, at 1 and 2
+  threads, beside the paper's TF (2.8-6.2 ms) and TFLite (0.63-1.96 ms) figures.
 """
 
 from __future__ import annotations
@@ -312,6 +315,77 @@ def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   return rows
 
 
+# ------------------------------------------------------------------ deploy
+
+def _deploy_args(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--calls", type=int, default=1000, help="timed single-image calls per row")
+  p.add_argument("--threads", default="1,2",
+                 help="comma-separated BLAS (numpy) / intra-op (onnxruntime) thread counts")
+  p.add_argument("--seed", type=int, default=0, help="seed of the random actor weights")
+
+
+def bench_deploy(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
+  """Single-decision latency (median and p99 over `--calls` calls, one image of the
+  config's size) of `NumpyPolicy` and onnxruntime on this CPU, per thread count, beside
+  the paper's TF / TFLite figures. The actor has random weights of the config's sizes
+  (the paper's: 104,100 parameters at 112x112). Each row runs `python -m
+  mjxvine.latency` in a fresh process, so that OPENBLAS_NUM_THREADS takes effect;
+  load_1m is the host's load when the row started (the machine may be shared)."""
+  import subprocess  # pylint: disable=import-outside-toplevel
+  import tempfile  # pylint: disable=import-outside-toplevel
+  from pathlib import Path  # pylint: disable=import-outside-toplevel
+  from mjxvine import deploy, export, networks  # pylint: disable=import-outside-toplevel
+  h, w = cfg.camera.height, cfg.camera.width
+  nets = networks.make_networks_from_config(cfg)
+  obs = {"depth": jp.zeros((1, h, w, 1)), "state": jp.zeros((1, 3))}
+  params, _ = networks.init_params(nets, jax.random.PRNGKey(args.seed), obs)
+  common = dict(image=f"{h}x{w}", actor_params=networks.num_params(params))
+  root = str(Path(__file__).resolve().parents[1])
+
+  def latency(path, threads, *flags):
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]))
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+      env[var] = str(threads)
+    cmd = [sys.executable, "-m", "mjxvine.latency", str(path), "--calls", str(args.calls),
+           *flags]
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+    if out.returncode != 0:
+      raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+  rows = []
+  with tempfile.TemporaryDirectory() as tmp:
+    npz = export.export_actor(params, Path(tmp) / "policy.npz", export.meta_from_config(cfg))
+    threads = [int(t) for t in args.threads.split(",")]
+    for n in threads:
+      rows.append(dict(impl="NumpyPolicy", threads=n, **common, **latency(npz, n)))
+    try:
+      import onnxruntime as ort  # pylint: disable=import-outside-toplevel
+      onnx_path = export.export_onnx(npz, Path(tmp) / "policy.onnx")
+    except ImportError as e:
+      rows.append(dict(impl="onnxruntime", **common, note=f"not available ({e}); "
+                       "pip install mjxvine[onnx]"))
+    else:
+      # Agreement of the two on a few random images (max |action difference|).
+      rng = np.random.default_rng(args.seed)
+      depth = rng.uniform(0.0, cfg.camera.max_depth_m, (4, h, w, 1)).astype(np.float32)
+      state = rng.uniform(-1.0, 1.0, (4, 3)).astype(np.float32)
+      sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+      diff = float(np.abs(sess.run(["action"], {"depth": depth, "state": state})[0] -
+                          deploy.NumpyPolicy.load(npz).action(depth, state)).max())
+      version = metadata.version("onnxruntime")
+      for n in threads:
+        for spin in ([True, False] if n > 1 else [True]):
+          flags = ["--threads", str(n)] + ([] if spin else ["--no-spinning"])
+          rows.append(dict(impl=f"onnxruntime {version}", threads=n, spinning=spin, **common,
+                           **latency(onnx_path, 1, *flags), max_abs_diff_vs_numpy=diff))
+  # Actor inference per decision on the robot CPUs in the paper (SPEC section 7), ms.
+  paper = {"TF (paper, robot CPU)": (2.8, 6.2), "TFLite (paper, robot CPU)": (0.63, 1.96)}
+  for name, (low, high) in paper.items():
+    rows.append(dict(impl=name, image="112x112", paper_low_ms=low, paper_high_ms=high))
+  return rows
+
+
 # ------------------------------------------------------------------ CLI
 
 # name -> (run(args, cfg) -> rows, add_arguments(parser), one-line help)
@@ -320,6 +394,7 @@ COMMANDS: dict[str, tuple[Callable[[argparse.Namespace, Any], list[dict]],
     "depth": (bench_depth, _depth_args, "depth camera images/s vs batch and size"),
     "physics": (bench_physics, _env_args, "MJX physics env-steps/s vs number of envs"),
     "env": (bench_env, _env_args, "whole env step (physics + depth + reward) env-steps/s"),
+    "deploy": (bench_deploy, _deploy_args, "single-decision latency: NumpyPolicy, onnxruntime"),
 }
 
 

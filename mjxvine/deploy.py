@@ -8,10 +8,12 @@
 The action is the deterministic test-time action of SAC: the tanh-squashed mean mapped
 onto the action box. Files are written by `mjxvine.export.export_actor`. Each conv is
 an im2col (a strided view copied into a preallocated buffer) and a single matmul; about
-1 ms per 112x112 decision on one core. On a busy CPU, run with OPENBLAS_NUM_THREADS=1
-(set before numpy is imported): multi-threaded BLAS on these small matrices is slower
-there. Inputs are checked (shape, NaN/inf); errors are `PolicyInputError`, file
-problems `PolicyFormatError`. Calls are thread-safe (buffers are per thread).
+1 ms per 112x112 decision on one quiet core (`python -m mjxvine.latency policy.npz`).
+On a busy CPU use one BLAS thread: OPENBLAS_NUM_THREADS=1 set before numpy is imported,
+or `NumpyPolicy.load(path, blas_threads=1)` with threadpoolctl installed; two OpenBLAS
+threads on a loaded 2-core machine took 16 ms instead of 1.7 ms. Inputs are checked
+(shape, NaN/inf); errors are `PolicyInputError`, file problems `PolicyFormatError`.
+Calls are thread-safe (buffers are per thread).
 """
 
 from __future__ import annotations
@@ -82,6 +84,43 @@ def _maxpool2(x: np.ndarray) -> np.ndarray:
   return np.maximum(top, np.maximum(x[:, 1::2, 0::2], x[:, 1::2, 1::2]), out=top)
 
 
+def read_policy_file(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
+  """(arrays, meta) of an .npz policy file; `PolicyFormatError` if unreadable/another version."""
+  path = Path(path)
+  if not path.is_file():
+    raise PolicyFormatError(f"{path}: no such policy file")
+  try:
+    with np.load(path, allow_pickle=False) as data:
+      arrays = {k: data[k] for k in data.files}
+  except Exception as e:  # not a zip / not npz / corrupted
+    raise PolicyFormatError(f"{path}: not a readable .npz policy file ({e})") from None
+  if META_KEY not in arrays:
+    raise PolicyFormatError(f"{path}: no {META_KEY} entry; not an mjxvine policy file")
+  try:
+    meta = json.loads(str(arrays.pop(META_KEY)))
+  except ValueError as e:
+    raise PolicyFormatError(f"{path}: unreadable metadata ({e})") from None
+  version = meta.get("format_version")
+  if version != FORMAT_VERSION:
+    raise PolicyFormatError(f"{path}: policy format version {version!r}; this mjxvine reads "
+                            f"version {FORMAT_VERSION} (re-export the checkpoint)")
+  return arrays, meta
+
+
+def set_blas_threads(n: int) -> bool:
+  """Limits numpy's BLAS to `n` threads for the whole process, via threadpoolctl.
+
+  Returns False (and changes nothing) when threadpoolctl is not installed; then set
+  OPENBLAS_NUM_THREADS / OMP_NUM_THREADS before numpy is imported instead.
+  """
+  try:
+    from threadpoolctl import threadpool_limits  # optional
+  except ImportError:
+    return False
+  threadpool_limits(int(n), user_api="blas")
+  return True
+
+
 class NumpyPolicy:
   """The actor's deterministic action, in numpy. Build with `NumpyPolicy.load(path)`."""
 
@@ -142,34 +181,23 @@ class NumpyPolicy:
     self._mean = (f32("mean/kernel"), f32("mean/bias"))
 
   @classmethod
-  def load(cls, path: str | Path, preprocess: bool = False) -> "NumpyPolicy":
+  def load(cls, path: str | Path, preprocess: bool = False,
+           blas_threads: int | None = None) -> "NumpyPolicy":
     """Loads an .npz written by `mjxvine.export.export_actor`.
 
     preprocess: the default for calls; if True, NaN depth pixels become 0 and the image
     is clipped to [0, max_depth] as the sensor does; if False, NaN/inf is an error.
+    blas_threads: if given, `set_blas_threads(blas_threads)` (process-wide; 1 is best on
+    a busy CPU); None leaves BLAS as it is.
     """
-    path = Path(path)
-    if not path.is_file():
-      raise PolicyFormatError(f"{path}: no such policy file")
+    arrays, meta = read_policy_file(path)
     try:
-      with np.load(path, allow_pickle=False) as data:
-        arrays = {k: data[k] for k in data.files}
-    except Exception as e:  # not a zip / not npz / corrupted
-      raise PolicyFormatError(f"{path}: not a readable .npz policy file ({e})") from None
-    if META_KEY not in arrays:
-      raise PolicyFormatError(f"{path}: no {META_KEY} entry; not an mjxvine policy file")
-    try:
-      meta = json.loads(str(arrays.pop(META_KEY)))
-    except ValueError as e:
-      raise PolicyFormatError(f"{path}: unreadable metadata ({e})") from None
-    version = meta.get("format_version")
-    if version != FORMAT_VERSION:
-      raise PolicyFormatError(f"{path}: policy format version {version!r}; this mjxvine reads "
-                              f"version {FORMAT_VERSION} (re-export the checkpoint)")
-    try:
-      return cls(arrays, meta, preprocess)
+      policy = cls(arrays, meta, preprocess)
     except PolicyFormatError as e:
       raise PolicyFormatError(f"{path}: {e}") from None
+    if blas_threads is not None:
+      set_blas_threads(blas_threads)
+    return policy
 
   # --------------------------------------------------------------------------------------
 

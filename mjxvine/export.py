@@ -1,11 +1,18 @@
-"""Export a trained actor to a numpy-only .npz policy file for `mjxvine.deploy`.
+"""Export a trained actor to a numpy-only .npz policy file for `mjxvine.deploy`, or ONNX.
 
     python -m mjxvine.export --checkpoint RUN_DIR [--out policy.npz] [--config FILE]
+    python -m mjxvine.export --checkpoint RUN_DIR --format onnx [--out policy.onnx]
+    python -m mjxvine.export --checkpoint policy.npz --format onnx   # convert a policy file
 
 The file holds the actor's float32 arrays under their flax paths ("tower/conv0/kernel",
 "dense0/bias", "mean/kernel", ...) and a JSON `__meta__` entry: format version, image
 size, FOVs, max depth, depth scale, action box, state layout, network layout, config
 hash and mjxvine version.
+
+The ONNX graph (`export_onnx`, opset 17; `pip install mjxvine[onnx]`) takes depth (B, H,
+W, 1) float32 metres and state (B, 3) and outputs action (B, 2): the same deterministic
+action as `NumpyPolicy`, box mapping and depth scaling included. onnx is imported only
+when ONNX is exported.
 """
 
 from __future__ import annotations
@@ -50,14 +57,8 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
   }
 
 
-def export_actor(actor_params: Any, path: str | Path, meta: dict) -> Path:
-  """Writes actor params (flax "params" dict of the conv-tower actor) and meta to `path`.
-
-  meta must give image_size [H, W], max_depth_m, action_low, action_high (lists of A
-  floats) and should give depth_scale (default 1.0: the depth multiplier the actor was
-  trained with), fovx_deg, fovy_deg, config_hash. format_version, mjxvine_version,
-  state_layout, conv_layers and num_hidden are filled in. Returns the path written.
-  """
+def actor_arrays(actor_params: Any, meta: dict) -> tuple[dict[str, np.ndarray], dict]:
+  """(arrays, full meta) of the policy file of actor params; see `export_actor`."""
   from mjxvine.networks import CONV_LAYERS  # imports jax: only needed when exporting
 
   missing = [k for k in REQUIRED_META if k not in meta]
@@ -75,11 +76,137 @@ def export_actor(actor_params: Any, path: str | Path, meta: dict) -> Path:
       "conv_layers": [[s, p] for s, p in CONV_LAYERS], "num_hidden": num_hidden,
   }
   full["format_version"] = FORMAT_VERSION
+  # numpy scalars/arrays in meta -> plain JSON values
+  full = json.loads(json.dumps(full, default=lambda o: o.tolist() if hasattr(o, "tolist")
+                               else str(o)))
+  return arrays, full
+
+
+def export_actor(actor_params: Any, path: str | Path, meta: dict) -> Path:
+  """Writes actor params (flax "params" dict of the conv-tower actor) and meta to `path`.
+
+  meta must give image_size [H, W], max_depth_m, action_low, action_high (lists of A
+  floats) and should give depth_scale (default 1.0: the depth multiplier the actor was
+  trained with), fovx_deg, fovy_deg, config_hash. format_version, mjxvine_version,
+  state_layout, conv_layers and num_hidden are filled in. Returns the path written.
+  """
+  arrays, full = actor_arrays(actor_params, meta)
   path = Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
   with open(path, "wb") as f:  # a file object: numpy adds no ".npz" suffix
-    text = json.dumps(full, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
-    np.savez(f, **arrays, **{META_KEY: np.array(text)})
+    np.savez(f, **arrays, **{META_KEY: np.array(json.dumps(full))})
+  return path
+
+
+# ----------------------------------------------------------------------------------------
+# ONNX (optional: needs the `onnx` package, imported only here)
+
+ONNX_OPSET = 17
+ONNX_META_KEY = "mjxvine_meta"
+
+
+def _policy_source(source: Any, meta: dict | None) -> tuple[dict[str, np.ndarray], dict]:
+  """(arrays, meta) from an .npz path or from (arrays, meta), validated by NumpyPolicy."""
+  from mjxvine.deploy import NumpyPolicy, read_policy_file
+
+  if isinstance(source, (str, Path)):
+    arrays, meta = read_policy_file(source)
+  else:
+    if isinstance(source, tuple):
+      source, meta = source
+    if meta is None:
+      raise ValueError("export_onnx: arrays need their meta")
+    arrays = {k: np.asarray(v, np.float32) for k, v in source.items() if k != META_KEY}
+  NumpyPolicy(arrays, meta)  # raises PolicyFormatError on missing or misshapen arrays
+  return arrays, meta
+
+
+def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = False):
+  """The actor's deterministic action as an `onnx.ModelProto` (opset 17).
+
+  Inputs: depth (B, H, W, 1) float32 metres, state (B, S) float32. Output: action (B, A)
+  float32 in the action box, as `NumpyPolicy.action`. The depth scale is folded into the
+  first conv kernel. preprocess=True adds NaN -> 0 and a clip to [0, max_depth] in front
+  (the `preprocess` of NumpyPolicy); otherwise inputs must be finite.
+  """
+  import onnx
+  from onnx import TensorProto, helper, numpy_helper
+
+  h, w = (int(v) for v in meta["image_size"])
+  layers = [(int(st), bool(pl)) for st, pl in meta["conv_layers"]]
+  low = np.asarray(meta["action_low"], np.float32)
+  high = np.asarray(meta["action_high"], np.float32)
+  state_size = arrays["dense0/kernel"].shape[0] - arrays["tower/conv0/kernel"].shape[-1]
+  inits, nodes = [], []
+
+  def const(name, value):
+    inits.append(numpy_helper.from_array(np.ascontiguousarray(value), name))
+    return name
+
+  def node(op, inputs, name, **attrs):
+    nodes.append(helper.make_node(op, inputs, [name], name=name, **attrs))
+    return name
+
+  x = "depth"
+  if preprocess:
+    zero, top = const("zero", np.float32(0.0)), const("max_depth", np.float32(meta["max_depth_m"]))
+    x = node("Where", [node("IsNaN", [x], "is_nan"), zero, x], "depth_no_nan")
+    x = node("Clip", [x, zero, top], "depth_clipped")
+  # (B, H, W, 1) -> (B, 1, H, W): a reshape, since there is one channel.
+  x = node("Reshape", [x, const("nchw_shape", np.array([-1, 1, h, w], np.int64))], "nchw")
+  for i, (stride, pool) in enumerate(layers):
+    k = arrays[f"tower/conv{i}/kernel"].astype(np.float32)  # (3, 3, C, F)
+    if i == 0:
+      k = k * np.float32(meta.get("depth_scale", 1.0))
+    x = node("Conv", [x, const(f"conv{i}_w", k.transpose(3, 2, 0, 1)),
+                      const(f"conv{i}_b", arrays[f"tower/conv{i}/bias"])], f"conv{i}",
+             kernel_shape=[3, 3], strides=[stride, stride])
+    x = node("Relu", [x], f"conv{i}_relu")
+    if pool:
+      x = node("MaxPool", [x], f"conv{i}_pool", kernel_shape=[2, 2], strides=[2, 2])
+  x = node("Flatten", [node("GlobalAveragePool", [x], "avg_pool")], "features", axis=1)
+  x = node("Concat", [x, "state"], "torso", axis=1)
+  for i in range(int(meta["num_hidden"])):
+    x = node("Gemm", [x, const(f"dense{i}_w", arrays[f"dense{i}/kernel"]),
+                      const(f"dense{i}_b", arrays[f"dense{i}/bias"])], f"dense{i}")
+    x = node("Relu", [x], f"dense{i}_relu")
+  x = node("Gemm", [x, const("mean_w", arrays["mean/kernel"]),
+                    const("mean_b", arrays["mean/bias"])], "mean")
+  # low + (tanh(u) + 1) / 2 (high - low) = tanh(u) (high - low) / 2 + (high + low) / 2
+  x = node("Mul", [node("Tanh", [x], "tanh"), const("half_range", (high - low) / 2)], "scaled")
+  nodes.append(helper.make_node("Add", [x, const("mid", (high + low) / 2)], ["action"],
+                                name="action"))
+  graph = helper.make_graph(
+      nodes, "mjxvine_actor",
+      [helper.make_tensor_value_info("depth", TensorProto.FLOAT, ["batch", h, w, 1]),
+       helper.make_tensor_value_info("state", TensorProto.FLOAT, ["batch", state_size])],
+      [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", len(low)])],
+      initializer=inits)
+  model = helper.make_model(graph, producer_name="mjxvine",
+                            producer_version=str(meta.get("mjxvine_version", "")),
+                            opset_imports=[helper.make_opsetid("", ONNX_OPSET)], ir_version=8,
+                            doc_string="mjxvine actor: depth (B,H,W,1) m, state (B,S) -> "
+                                       "deterministic action (B,A) in the action box")
+  helper.set_model_props(model, {ONNX_META_KEY: json.dumps(meta)})
+  onnx.checker.check_model(model, full_check=True)
+  return model
+
+
+def export_onnx(source: Any, path: str | Path, meta: dict | None = None,
+                preprocess: bool = False) -> Path:
+  """Writes the ONNX graph of a policy to `path` and returns it.
+
+  source: an .npz policy file (from `export_actor`), or its arrays {"tower/conv0/kernel":
+  ...} with `meta` (the full metadata, as `actor_arrays` returns), or an (arrays, meta)
+  tuple. The metadata is stored as JSON under the model property "mjxvine_meta".
+  """
+  import onnx
+
+  arrays, meta = _policy_source(source, meta)
+  model = onnx_model(arrays, meta, preprocess)
+  path = Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  onnx.save(model, str(path))
   return path
 
 
@@ -133,22 +260,42 @@ def main(argv=None) -> None:
   parser = argparse.ArgumentParser(prog="python -m mjxvine.export", description=__doc__,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
   parser.add_argument("--checkpoint", required=True,
-                      help="run dir or orbax checkpoint dir (the latest step is used)")
-  parser.add_argument("--out", default=None, help="output .npz (default RUN_DIR/policy.npz)")
+                      help="run dir or orbax checkpoint dir (the latest step is used); with "
+                           "--format onnx also an exported .npz policy file")
+  parser.add_argument("--format", choices=("npz", "onnx"), default="npz",
+                      help="npz (numpy-only mjxvine.deploy) or onnx (needs the onnx package)")
+  parser.add_argument("--out", default=None,
+                      help="output file (default RUN_DIR/policy.npz or RUN_DIR/policy.onnx; "
+                           "for an .npz input, the same name with .onnx)")
+  parser.add_argument("--preprocess", action="store_true",
+                      help="onnx: map NaN depth to 0 and clip to [0, max_depth] in the graph")
   config_lib.add_config_args(parser)
   args = parser.parse_args(argv)
-  run_dir = Path(args.checkpoint)
-  if args.config is None and (run_dir / "config.yaml").is_file():
-    args.config = str(run_dir / "config.yaml")
+  src = Path(args.checkpoint)
+  if src.is_file():
+    if args.format != "onnx":
+      raise SystemExit(f"export error: {src} is a file; an .npz policy converts only to "
+                       "--format onnx")
+    out = Path(args.out) if args.out else src.with_suffix(".onnx")
+    try:
+      export_onnx(src, out, preprocess=args.preprocess)
+    except ValueError as e:  # PolicyFormatError
+      raise SystemExit(f"export error: {e}") from None
+    print(f"wrote {out} (from {src})", file=sys.stderr)
+    return
+  if args.config is None and (src / "config.yaml").is_file():
+    args.config = str(src / "config.yaml")
   cfg = config_lib.config_from_args(args)
   try:
-    actor, item = load_actor_params(run_dir)
+    actor, item = load_actor_params(src)
   except (FileNotFoundError, KeyError) as e:
     raise SystemExit(f"export error: {e}") from None
-  out = Path(args.out) if args.out else run_dir / "policy.npz"
-  export_actor(actor, out, meta_from_config(cfg))
+  out = Path(args.out) if args.out else src / f"policy.{args.format}"
+  if args.format == "onnx":
+    export_onnx(actor_arrays(actor, meta_from_config(cfg)), out, preprocess=args.preprocess)
+  else:
+    export_actor(actor, out, meta_from_config(cfg))
   print(f"wrote {out} (from {item}, config {args.config or 'defaults'})", file=sys.stderr)
-
 
 if __name__ == "__main__":
   main()

@@ -205,3 +205,23 @@ def test_export_cli_from_orbax_checkpoint(exported, tmp_path):
   np.testing.assert_allclose(got, expected, atol=1e-5)
   with pytest.raises(SystemExit, match="no orbax checkpoint"):
     export.main(["--checkpoint", str(tmp_path / "empty")])
+
+
+def test_ros2_example_compiles(tmp_path):
+  """examples/ros2_vineyard_node.py needs rclpy to run; it must at least compile."""
+  import py_compile
+
+  src = Path(__file__).resolve().parents[1] / "examples" / "ros2_vineyard_node.py"
+  py_compile.compile(str(src), cfile=str(tmp_path / "node.pyc"), doraise=True)
+
+
+def test_latency_numpy(exported, capsys):
+  """mjxvine.latency times single decisions through the public API (a few calls here)."""
+  from mjxvine import latency
+
+  result = latency.numpy_latency(exported[0], calls=5)
+  assert result["calls"] == 5 and 0.0 < result["min_ms"] <= result["median_ms"]
+  assert result["median_ms"] <= result["p99_ms"]
+  latency.main([str(exported[0]), "--calls", "3"])
+  assert json.loads(capsys.readouterr().out)["calls"] == 3
+  assert isinstance(deploy.set_blas_threads(1), bool)
