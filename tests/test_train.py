@@ -110,3 +110,28 @@ def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
 def test_cli_refuses_bad_resume(tmp_path):
   with pytest.raises(SystemExit, match="no config.yaml"):
     train_mod.main(["--resume", str(tmp_path)])
+
+
+def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
+  """export -> .npz holds the checkpoint's actor; `evaluate --policy x.npz` runs it; a
+  policy for another image size is refused in one line."""
+  from mjxvine import evaluate, export, policies
+  from mjxvine.env import VineyardEnv
+  from mjxvine.worlds import generate_world
+  run, _ = first_run
+  npz = tmp_path / "policy.npz"
+  export.main(["--checkpoint", str(run), "--out", str(npz)])
+  cfg = load_config(run / "config.yaml", ["world.test_length_m=8", "env.max_steps=15"])
+  world = generate_world("test", 0, cfg.world)
+  env = VineyardEnv(cfg, [world], auto_reset=False)
+  from_run = policies.load_actor_params(run, env)
+  from_npz = policies.load_actor_params(npz, env)
+  for a, b in zip(jax.tree.leaves(from_run), jax.tree.leaves(from_npz)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  doc = evaluate.evaluate(cfg, str(npz), world, runs=1, noise_factor=1.0, lanes=(1,),
+                          directions=("F",))
+  assert doc["overall"]["runs"] == 1 and doc["rows"][0]["outcomes"][0] in (
+      "timeout", "collision", "left_lane", "reversed", "success")
+  other = VineyardEnv(load_config(run / "config.yaml", ["camera.width=40"]), [world])
+  with pytest.raises(evaluate.PolicyError, match="trained for 36x36"):
+    evaluate.load_policy(str(npz), other)

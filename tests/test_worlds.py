@@ -172,3 +172,23 @@ def test_batch_of_different_worlds_steps(cfg):
     np.testing.assert_allclose(dx.qpos[i, :3], d.qpos[:3], atol=2e-3)
     np.testing.assert_allclose(take_world(mx, axes, i).geom_pos, m.geom_pos, atol=1e-6)
   assert not np.allclose(dx.qpos[0, :3], dx.qpos[1, :3])
+
+
+def test_worlds_cli_depth_at(tmp_path):
+  out = tmp_path / "depth"
+  args = ["--kind", "train", "--seed", "0", "--out", str(out), "--depth-at", "3.0,-0.9,0.1",
+          "--set", "camera.width=32", "--set", "camera.height=24"]
+  assert worlds_main(args) == 0
+  depth = np.load(out / "depth.npy")
+  noisy = np.load(out / "depth_noisy.npy")
+  cam = json.loads((out / "camera.json").read_text())
+  assert depth.shape == noisy.shape == (24, 32) and depth.dtype == np.float32
+  assert cam["width"] == 32 and cam["height"] == 24 and len(cam["xmat"]) == 9
+  assert 0 <= depth.min() and depth.max() <= 5.0 and not np.array_equal(depth, noisy)
+  # the robot settled on the terrain at the asked pose; the camera looks along +x (yaw 0.1)
+  assert abs(cam["pos"][0] - 3.0 - 0.21 * np.cos(0.1)) < 0.05
+  forward = -np.asarray(cam["xmat"]).reshape(3, 3)[:, 2]
+  assert forward[0] > 0.95
+  # the bottom rows see the ground close by, the top rows see farther
+  assert depth[-1].mean() < depth[0].mean()
+  assert (out / "depth.png").stat().st_size > 5000
