@@ -158,7 +158,7 @@ class VineyardEnv(Env):
     env = self.cfg.env
     world = jax.random.randint(kw, (), 0, len(self.worlds))
     lane = jax.random.randint(kl, (), 0, self.lanes.count[world])
-    direction = jp.where(jax.random.bernoulli(kd), 1.0, -1.0)
+    direction = jp.where(jax.random.bernoulli(kd), jp.float32(1), jp.float32(-1))
     length = self.worlds[0].length_m
     along = jax.random.uniform(ka, (), minval=0.0, maxval=0.6 * length)
     lateral = jax.random.uniform(kx, (), minval=-1.0, maxval=1.0) * env.start_lateral_jitter_m

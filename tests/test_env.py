@@ -121,7 +121,7 @@ def test_nan_physics_resets_only_that_env(env, fns):
   _, step = fns
   s = _start(fns)
   bad = s.pipeline_state.replace(qvel=s.pipeline_state.qvel.at[1].set(jp.nan))
-  s2, _ = step(s.replace(pipeline_state=bad), jp.full((N, 2), 0.3))
+  s2, _ = step(s.replace(pipeline_state=bad), jp.full((N, 2), 0.3, jp.float32))
   assert np.all(np.isfinite(np.asarray(s2.pipeline_state.qpos)))
   assert np.isfinite(np.asarray(s2.reward)).all()
   assert list(np.asarray(s2.done)) == [0, 1, 0, 0]
