@@ -251,8 +251,6 @@ def load_world(path: str | Path) -> Vineyard:
   d = json.loads(Path(path).read_text())
   lanes = tuple(Lane(**{k: (np.asarray(v) if isinstance(v, list) else v) for k, v in l.items()})
                 for l in d.pop("lanes"))
-  d["terrain_extent"] = tuple(d["terrain_extent"])
-  arrays = {k: np.asarray(v) for k, v in d.items() if isinstance(v, list)}
-  d.update(arrays)
-  d["terrain_extent"] = tuple(d["terrain_extent"])
+  d.update({k: np.asarray(v) for k, v in d.items() if isinstance(v, list)})
+  d["terrain_extent"] = tuple(d["terrain_extent"].tolist())
   return Vineyard(lanes=lanes, **d)
