@@ -59,11 +59,16 @@ class NonFiniteError(RuntimeError):
   """A loss or a parameter became NaN or infinite."""
 
 
-def make_trainer(cfg: Config, env: VineyardEnv):
+def make_trainer(cfg: Config, env):
   """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
   iteration(TrainState, None) -> (TrainState, metrics), summarize)."""
   n = cfg.env.num_envs
-  nets = nw.make_networks_from_config(cfg)
+  # The action box comes from the env: the vineyard's [0, v_max] x [-w_max, w_max], or
+  # [-1, 1] for a brax env behind `BraxAdapter`.
+  nets = nw.make_networks(env.action_low, env.action_high, hidden=cfg.sac.hidden,
+                          conv_features=cfg.sac.conv_features,
+                          depth_scale=1.0 / cfg.camera.max_depth_m,
+                          log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max)
   sac = sac_lib.make_sac(nets, cfg.sac)
   warmup = cfg.sac.warmup_steps
 
@@ -145,8 +150,8 @@ def _scan_chunks(cfg: Config) -> bool:
 
 
 @functools.lru_cache(maxsize=4)
-def _compiled(cfg: Config, seeds: int):
-  env = VineyardEnv(cfg)
+def _compiled(cfg: Config, seeds: int, env=None):
+  env = VineyardEnv(cfg) if env is None else env
   sac, init, chunk, iteration, summarize = make_trainer(cfg, env)
   batch = (lambda f: f) if seeds == 1 else jax.vmap
   init_fn = jax.jit(lambda k: init(k[0])) if seeds == 1 else jax.jit(jax.vmap(init))
@@ -176,12 +181,13 @@ def _compiled(cfg: Config, seeds: int):
   return sac, init_fn, host_chunk
 
 
-def compiled_trainer(cfg: Config, seeds: int = 1):
+def compiled_trainer(cfg: Config, seeds: int = 1, env=None):
   """(sac, init(keys (seeds, 2)), chunk) jitted, cached per process on everything that
-  shapes the compiled program (so a resume in the same process does not recompile)."""
+  shapes the compiled program (so a resume in the same process does not recompile).
+  `env`: the config's `VineyardEnv` by default, or e.g. a `BraxAdapter`."""
   return _compiled(replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
                                        "save_replay": False},
-                           eval={"runs_after_train": 0}), seeds)
+                           eval={"runs_after_train": 0}), seeds, env)
 
 
 def _zero_metrics(sac, learner, buffer, key):
@@ -309,11 +315,14 @@ def plot_learning_curve(run_dir: Path) -> None:
 
 # ---------------------------------------------------------------------- the run
 def train(cfg: Config, run_dir: Path, *, seeds: int = 1, resume: bool = False,
-          evaluate_at_end: bool = True, quiet: bool = False) -> dict:
-  """Trains (or resumes) a run; returns the final log row of seed 0."""
+          evaluate_at_end: bool = True, quiet: bool = False, env=None) -> dict:
+  """Trains (or resumes) a run; returns the final log row of seed 0. `env` defaults to
+  the config's vineyard pool; another env (a `BraxAdapter`) trains the same way, without
+  the vineyard evaluation at the end."""
   run_dir.mkdir(parents=True, exist_ok=True)
   (run_dir / "config.yaml").write_text(to_yaml(cfg))
-  sac, init_fn, chunk_fn = compiled_trainer(cfg, seeds)
+  sac, init_fn, chunk_fn = compiled_trainer(cfg, seeds, env)
+  evaluate_at_end = evaluate_at_end and env is None
   ts = init_fn(jax.random.split(jax.random.PRNGKey(cfg.train.seed), seeds))
   nbytes = sac_lib.buffer_nbytes(ts.buffer)
   ckpt = Checkpoints(run_dir, cfg.train.save_replay)
