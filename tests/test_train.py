@@ -87,8 +87,8 @@ def test_resume_with_replay_is_exact(tmp_path):
 def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
   real = train_mod.compiled_trainer
 
-  def poisoned(cfg, seeds=1):
-    sac, init_fn, chunk_fn = real(cfg, seeds)
+  def poisoned(cfg, seeds=1, env=None):
+    sac, init_fn, chunk_fn = real(cfg, seeds, env)
 
     def chunk(ts):
       ts, m = chunk_fn(ts)
