@@ -106,8 +106,7 @@ class VineyardEnv(Env):
     data = mujoco.MjData(self.mj_model)
     mujoco.mj_forward(self.mj_model, data)
     self._data0 = mjx.put_data(self.mj_model, data)
-    hid = 0
-    self._hfield = (int(self.mj_model.hfield_nrow[hid]), int(self.mj_model.hfield_ncol[hid]))
+    self._hfield = (int(self.mj_model.hfield_nrow[0]), int(self.mj_model.hfield_ncol[0]))
     self._terrain_geom = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_GEOM, "terrain")
 
   # ------------------------------------------------------------------ brax Env API

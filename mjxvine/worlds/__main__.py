@@ -16,10 +16,9 @@ import numpy as np
 
 from mjxvine.config import add_config_args, config_from_args
 from mjxvine.worlds.build import build_spec, terrain_height
-from mjxvine.worlds.layout import generate_world
 from mjxvine.worlds.plot import save_map
 from mjxvine.worlds.robots import ROBOTS
-from mjxvine.worlds.store import load_test_world
+from mjxvine.worlds.store import make_world
 
 SETTLE_S = 1.0
 
@@ -80,10 +79,7 @@ def main(argv=None) -> int:
   add_config_args(p)
   args = p.parse_args(argv)
   cfg = config_from_args(args, [f"robot.name={args.robot}"] if args.robot else [])
-  if args.kind == "test" and args.seed == cfg.world.test_seed:
-    world = load_test_world(cfg.world)
-  else:
-    world = generate_world(args.kind, args.seed, cfg.world)
+  world = make_world(str(args.seed), cfg.world, kind=args.kind)
   out = Path(args.out)
   out.mkdir(parents=True, exist_ok=True)
   spec = build_spec(world, cfg)
