@@ -1,14 +1,23 @@
 """Benchmarks: `python -m mjxvine.bench <sub-command> [--out FILE.json]`.
 
-Each sub-command is a function `(args, cfg) -> rows` (a list of flat dicts) registered in
+Each sub-command is a function `(args, cfg) -> rows` (a list of flat dicts; or `(rows,
+extra)`, extra fields for the JSON) registered in
 `COMMANDS` with the function that adds its own arguments; `write_results(name, rows,
 out)` prints the rows as a table and writes them to JSON together with the device, the
 JAX backend, library versions, the host's CPU count and load. Add a sub-command by
 writing those two functions and one `COMMANDS` entry.
 
 Sub-commands
-- physics: env-steps/s of the batched MJX physics alone (0.1 s control steps).
+- all: every sub-command with its defaults (`--quick`: small sizes), one bench.json.
+- physics: env-steps/s of the batched MJX physics alone (0.1 s control steps), and the
+  ratio against a Python loop over envs calling `mujoco.mj_step` (one thread).
 - env: env-steps/s of the whole env step at the config's image size.
+- update: SAC gradient steps/s at batch 128 and 512 (config image size and networks).
+- train: end-to-end `mjxvine.train` env-steps/s and gradient-steps/s while learning
+  (default `experiments/fast.yaml`), per env count.
+- brax: brax's own SAC and mjxvine's SAC with one schedule on the vector-observation
+  vineyard task (`VectorObsEnv`), scored by brax's `Evaluator`; env steps and wall-clock
+  to a common success rate, as ratios.
 - depth: images/s of `depth.render_depth` (vmapped over a batch of robot poses in one
   vineyard) for batch sizes 1, 16, 64, 256 (and 1024, 4096 on an accelerator) at 112x112
   and 64x64, compile time apart, agreement with `mujoco.mj_multiRay` on one image, and
@@ -32,6 +41,7 @@ import sys
 import time
 from functools import partial
 from importlib import metadata
+from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -263,6 +273,8 @@ def _env_args(p: argparse.ArgumentParser) -> None:
   p.add_argument("--sizes", default=None, help="comma-separated env counts (default "
                  "1,16,64,256, plus 1024,4096,16384 on an accelerator)")
   p.add_argument("--steps", type=int, default=10, help="control steps per timed call")
+  p.add_argument("--no-baseline", dest="baseline", action="store_false",
+                 help="skip the Python loop over mujoco.mj_step (physics) baseline")
 
 
 def _env_setup(cfg, n: int):
@@ -292,10 +304,35 @@ def bench_physics(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict
       return jax.lax.fori_loop(0, args.steps, lambda _, x: step(x, worlds, a), d)
 
     t = time_call(jax.jit(run), state.pipeline_state, state.info["pose"]["world"], action)
-    rows.append(dict(envs=n, substeps=nsub, env_steps_per_s=n * args.steps / t["call_s"],
-                     compile_s=t["compile_s"], cpu_ms_per_env_step=1e3 * t["cpu_s"] /
-                     (n * args.steps)))
+    rate = n * args.steps / t["call_s"]
+    rows.append(dict(envs=n, substeps=nsub, env_steps_per_s=rate, compile_s=t["compile_s"],
+                     cpu_ms_per_env_step=1e3 * t["cpu_s"] / (n * args.steps)))
+  if args.baseline:
+    base = mujoco_loop_rate(env, seconds=2.0)
+    for row in rows:
+      row.update(mj_step_loop_env_steps_per_s=base,
+                 ratio_vs_mj_step_loop=row["env_steps_per_s"] / base)
   return rows
+
+
+def mujoco_loop_rate(env, seconds: float = 2.0) -> float:
+  """Env-steps/s of the baseline a NumPy user would write: a Python loop over envs calling
+  the C library's `mujoco.mj_step` control_dt / physics_dt times per control step (one
+  thread, the same world model and wheel commands)."""
+  from mjxvine.worlds import wheel_speeds  # pylint: disable=import-outside-toplevel
+  model = env.mj_model
+  datas = [mujoco.MjData(model) for _ in range(8)]
+  for d in datas:
+    mujoco.mj_forward(model, d)
+  ctrl = np.array(wheel_speeds(0.3, 0.1, env.robot), np.float64)
+  steps, start = 0, time.perf_counter()
+  while time.perf_counter() - start < seconds:
+    for d in datas:
+      d.ctrl[:] = ctrl
+      for _ in range(env._nsub):  # pylint: disable=protected-access
+        mujoco.mj_step(model, d)
+      steps += 1
+  return steps / (time.perf_counter() - start)
 
 
 def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
@@ -313,6 +350,172 @@ def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
                      env_steps_per_s=n * args.steps / t["call_s"], compile_s=t["compile_s"],
                      cpu_ms_per_env_step=1e3 * t["cpu_s"] / (n * args.steps)))
   return rows
+
+
+# ------------------------------------------------------------------ learner and trainer
+
+def _update_args(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--batch-sizes", default="128,512", help="comma-separated SAC batch sizes")
+  p.add_argument("--grad-steps", type=int, default=None,
+                 help="gradient steps per timed call (default sac.grad_steps_per_iter)")
+
+
+def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
+  """SAC gradient steps/s (`update_many`: sample from a full replay, twin-critic, actor
+  and target updates) at the config's image size and networks, per batch size."""
+  from mjxvine import networks as nw  # pylint: disable=import-outside-toplevel
+  from mjxvine import sac as sac_lib  # pylint: disable=import-outside-toplevel
+  rows = []
+  g = args.grad_steps or cfg.sac.grad_steps_per_iter
+  for b in (int(x) for x in args.batch_sizes.split(",")):
+    c = config_lib.replace(cfg, sac={"batch_size": b, "grad_steps_per_iter": g})
+    sac = sac_lib.make_sac(nw.make_networks_from_config(c), c.sac)
+    h, w = c.camera.height, c.camera.width
+    n = 16
+    obs = {"depth": jp.ones((n, h, w, 1)), "state": jp.zeros((n, 3))}
+    buffer = sac_lib.init_buffer(obs, 2, max(4 * b, 64 * n), c.camera.max_depth_m,
+                                 jp.dtype(c.sac.replay_depth_dtype))
+    buffer = buffer.replace(rows_written=jp.int32(buffer.num_rows))  # full (zeros)
+    learner = sac.init(jax.random.PRNGKey(0), obs)
+    t = time_call(jax.jit(sac.update_many), learner, buffer, jax.random.PRNGKey(1))
+    rows.append(dict(batch=b, image=f"{h}x{w}", grad_steps_per_call=g,
+                     grad_steps_per_s=g / t["call_s"],
+                     samples_per_s=g * b / t["call_s"], compile_s=t["compile_s"]))
+  return rows
+
+
+def _train_args(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--sizes", default=None, help="comma-separated env counts (default: the "
+                 "config's num_envs)")
+  p.add_argument("--iters", type=int, default=None,
+                 help="iterations per timed chunk (default train.iters_per_chunk)")
+  p.set_defaults(config=str(EXPERIMENTS / "fast.yaml"))
+
+
+def bench_train(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
+  """End-to-end training throughput of `mjxvine.train` (default `experiments/fast.yaml`):
+  env-steps/s and gradient-steps/s of whole learning chunks (env steps with exploration,
+  replay inserts, gradient steps), after a first chunk that compiles and fills the replay
+  beyond one batch. Compile time is the first chunk's excess over a steady one."""
+  from mjxvine import train as train_lib  # pylint: disable=import-outside-toplevel
+  rows = []
+  sizes = [int(x) for x in args.sizes.split(",")] if args.sizes else [cfg.env.num_envs]
+  for n in sizes:
+    iters = args.iters or cfg.train.iters_per_chunk
+    c = config_lib.replace(cfg, env={"num_envs": n}, sac={"warmup_steps": 0},
+                           train={"iters_per_chunk": iters})
+    _, init_fn, chunk_fn = train_lib.compiled_trainer(c)
+    ts = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
+    times = []
+    for _ in range(2):
+      t = time.perf_counter()
+      ts, m = chunk_fn(ts)
+      jax.block_until_ready(m)
+      times.append(time.perf_counter() - t)
+    g = iters * c.sac.grad_steps_per_iter
+    rows.append(dict(envs=n, image=f"{c.camera.height}x{c.camera.width}",
+                     batch=c.sac.batch_size, grad_steps_per_iter=c.sac.grad_steps_per_iter,
+                     env_steps_per_s=n * iters / times[1], grad_steps_per_s=g / times[1],
+                     compile_s=max(times[0] - times[1], 0.0),
+                     finite=bool(np.all(m["finite"]))))
+  return rows
+
+
+# ------------------------------------------------------------------ brax's SAC
+
+def _brax_args(p: argparse.ArgumentParser) -> None:
+  p.add_argument("--steps", type=int, default=20_000, help="env steps per learner")
+  p.add_argument("--evals", type=int, default=10, help="evaluations along the way")
+  p.add_argument("--eval-envs", type=int, default=64, help="episodes per evaluation")
+  p.add_argument("--pool", default="8x8", help="depth average-pooled to HxW cells")
+  p.add_argument("--target", type=float, default=0.5,
+                 help="success rate whose env steps and wall-clock are compared")
+  p.set_defaults(config=str(EXPERIMENTS / "compare.yaml"))
+
+
+def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
+  """brax's SAC (`brax.training.agents.sac`) and mjxvine's SAC side by side on the same
+  vineyard task, with the same schedule (envs, batch, gradient steps per env step,
+  learning rate, gamma, tau, replay, warm-up, reward scale, automatic temperature), both
+  evaluated by brax's own `Evaluator` (deterministic policy, `--eval-envs` episodes).
+
+  brax's SAC takes vector observations only, so both learn on `VectorObsEnv`: the depth
+  image average-pooled to `--pool` cells plus the state (the paper's conv tower cannot
+  be given to brax's SAC). Each row is one evaluation: env steps, training wall-clock
+  (compilation included, evaluation excluded) and success rate."""
+  import functools as ft  # pylint: disable=import-outside-toplevel
+  import tempfile  # pylint: disable=import-outside-toplevel
+  from brax import envs as brax_envs  # pylint: disable=import-outside-toplevel
+  from brax.training.acting import Evaluator  # pylint: disable=import-outside-toplevel
+  from brax.training.agents.sac import train as brax_sac  # pylint: disable=import-outside-toplevel
+  from mjxvine import brax_adapter  # pylint: disable=import-outside-toplevel
+  from mjxvine import train as train_lib  # pylint: disable=import-outside-toplevel
+
+  pool = tuple(int(x) for x in args.pool.split("x"))
+  venv = brax_adapter.VectorObsEnv(cfg, pool)
+  c, length, n = cfg.sac, cfg.env.max_steps, cfg.env.num_envs
+  per_eval = args.steps // args.evals
+  rows: list[dict] = []
+
+  # brax: progress_fn runs after each evaluation; "training/walltime" is brax's own clock
+  # of its training epochs (compilation included, evaluation excluded).
+  def progress(step, metrics):
+    rows.append(dict(learner="brax.sac", env_steps=int(step),
+                     train_s=float(metrics.get("training/walltime", 0.0)),
+                     success=float(metrics["eval/episode_success"]),
+                     episode_return=float(metrics["eval/episode_reward"])))
+
+  brax_sac.train(
+      environment=venv, num_timesteps=args.steps, episode_length=length, num_envs=n,
+      num_eval_envs=args.eval_envs, learning_rate=c.learning_rate, discounting=c.gamma,
+      seed=cfg.train.seed, batch_size=c.batch_size, num_evals=args.evals + 1,
+      reward_scaling=c.reward_scale, tau=c.tau, min_replay_size=c.warmup_steps,
+      max_replay_size=c.buffer_size, grad_updates_per_step=c.grad_steps_per_iter,
+      deterministic_eval=True, progress_fn=progress)
+
+  # mjxvine: the same setting through BraxAdapter, evaluated by the same Evaluator.
+  ours = config_lib.replace(
+      cfg, sac={"auto_alpha": True, "alpha": 1.0, "target_entropy": -1.0, "eps_start": 0.0,
+                "eps_min": 0.0},
+      train={"iters_per_chunk": max(1, per_eval // n // 4)})
+  adapter = brax_adapter.BraxAdapter(venv, length)
+  sac, _, _ = train_lib.compiled_trainer(ours, env=adapter)
+  evaluator = Evaluator(
+      brax_envs.training.wrap(venv, episode_length=length),
+      lambda params: (lambda obs, key: (sac.act_deterministic(params, obs), {})),
+      num_eval_envs=args.eval_envs, episode_length=length, action_repeat=1,
+      key=jax.random.PRNGKey(cfg.train.seed + 1))
+  run = Path(tempfile.mkdtemp(prefix="bench-brax-"))
+  train_s = 0.0
+  for k in range(args.evals + 1):
+    steps = max(k * per_eval, 1)
+    t = time.perf_counter()
+    if k:
+      train_lib.train(config_lib.replace(ours, train={"total_env_steps": steps}), run,
+                      resume=k > 1, evaluate_at_end=False, quiet=True, env=adapter)
+    train_s += time.perf_counter() - t
+    template = train_lib.compiled_trainer(ours, env=adapter)[1](
+        jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
+    restored = train_lib.Checkpoints(run, False).restore(template) if k else None
+    params = (restored[1] if restored else template).learner.actor_params
+    m = evaluator.run_evaluation(params, training_metrics={})
+    rows.append(dict(learner="mjxvine.sac", env_steps=int(steps if k else 0), train_s=train_s,
+                     success=float(m["eval/episode_success"]),
+                     episode_return=float(m["eval/episode_reward"])))
+  return rows, {"summary": brax_summary(rows, args.target), "target_success": args.target}
+
+
+def brax_summary(rows: list[dict], target: float) -> dict:
+  """Env steps and training seconds each learner took to first reach `target` success,
+  and mjxvine's speed-up (brax / mjxvine) where both did."""
+  out = {}
+  for name in ("brax.sac", "mjxvine.sac"):
+    hit = [r for r in rows if r["learner"] == name and r["success"] >= target]
+    out[name] = dict(env_steps=hit[0]["env_steps"], train_s=hit[0]["train_s"]) if hit else None
+  if out["brax.sac"] and out["mjxvine.sac"]:
+    out["wall_clock_ratio"] = out["brax.sac"]["train_s"] / max(out["mjxvine.sac"]["train_s"], 1e-9)
+    out["env_steps_ratio"] = out["brax.sac"]["env_steps"] / max(out["mjxvine.sac"]["env_steps"], 1)
+  return out
 
 
 # ------------------------------------------------------------------ deploy
@@ -395,7 +598,11 @@ COMMANDS: dict[str, tuple[Callable[[argparse.Namespace, Any], list[dict]],
     "physics": (bench_physics, _env_args, "MJX physics env-steps/s vs number of envs"),
     "env": (bench_env, _env_args, "whole env step (physics + depth + reward) env-steps/s"),
     "deploy": (bench_deploy, _deploy_args, "single-decision latency: NumpyPolicy, onnxruntime"),
+    "update": (bench_update, _update_args, "SAC gradient steps/s vs batch size"),
+    "train": (bench_train, _train_args, "end-to-end training env-steps/s and grad-steps/s"),
+    "brax": (bench_brax, _brax_args, "brax's SAC vs mjxvine's SAC on the same task"),
 }
+EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -404,14 +611,52 @@ def main(argv: list[str] | None = None) -> int:
   sub = parser.add_subparsers(dest="command", required=True)
   for name, (_, add_args, doc) in COMMANDS.items():
     p = sub.add_parser(name, help=doc)
-    p.add_argument("--out", default=None, help="write the results to this JSON file")
+    p.add_argument("--out", default=f"bench-{name}.json",
+                   help="write the results to this JSON file ('' for none)")
     config_lib.add_config_args(p)
     add_args(p)
+  p = sub.add_parser("all", help="every sub-command with its defaults; one bench.json")
+  p.add_argument("--out", default="bench.json", help="the combined JSON file")
+  p.add_argument("--quick", action="store_true",
+                 help="small sizes (CPU smoke: env counts 1,16; batch 32; 48x48 trainer)")
   args = parser.parse_args(argv)
+  if args.command == "all":
+    return run_all(args.out, args.quick)
   cfg = config_lib.config_from_args(args)
   run, _, _ = COMMANDS[args.command]
-  rows = run(args, cfg)
-  write_results(args.command, rows, args.out, config_hash=config_lib.config_hash(cfg))
+  rows, extra = _rows_and_extra(run(args, cfg))
+  write_results(args.command, rows, args.out or None, config_hash=config_lib.config_hash(cfg),
+                **extra)
+  return 0
+
+
+def _rows_and_extra(result) -> tuple[list[dict], dict]:
+  """A sub-command returns its rows, or (rows, extra fields for the JSON)."""
+  return result if isinstance(result, tuple) else (result, {})
+
+
+def run_all(out: str, quick: bool = False) -> int:
+  """Runs every sub-command with its default arguments (`quick`: small sizes) and writes
+  one JSON: {"environment": ..., "<command>": {"rows": [...], ...}}."""
+  quick_args = {"physics": ["--sizes", "1,16"], "env": ["--sizes", "1,16"],
+                "depth": ["--batches", "1,16", "--sizes", "48x48", "--baseline-batch", "1"], "update": ["--batch-sizes", "32"],
+                "deploy": ["--calls", "100"], "brax": ["--steps", "2000", "--evals", "2"],
+                "train": ["--set", "camera.width=48", "--set", "camera.height=48",
+                          "--set", "env.num_envs=8", "--set", "sac.batch_size=32",
+                          "--set", "sac.buffer_size=4096", "--set", "sac.grad_steps_per_iter=1",
+                          "--iters", "4"]}
+  doc = {"environment": environment()}
+  for name, (run, add_args, _) in COMMANDS.items():
+    p = argparse.ArgumentParser()
+    config_lib.add_config_args(p)
+    add_args(p)
+    args = p.parse_args(quick_args.get(name, []) if quick else [])
+    cfg = config_lib.config_from_args(args)
+    rows, extra = _rows_and_extra(run(args, cfg))
+    doc[name] = write_results(name, rows, None, config_hash=config_lib.config_hash(cfg),
+                              **extra)
+  if out:
+    Path(out).write_text(json.dumps(doc, indent=1, default=_json_default))
   return 0
 
 

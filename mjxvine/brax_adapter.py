@@ -67,3 +67,49 @@ class BraxAdapter:
   def step_batch(self, state: State, action: jax.Array):
     """(next states, each env's observation before its reset)."""
     return jax.vmap(self._step)(state, action)
+
+
+class VectorObsEnv(Env):
+  """The vineyard task with one flat observation vector, for learners that take vectors
+  only (brax's own SAC): the noisy depth image average-pooled to `pool` (h, w) cells and
+  scaled to [0, 1] of the camera's range, then [v_prev, w_prev, yaw]. Actions are in
+  [-1, 1]^2, mapped affinely onto [0, v_max] x [-w_max, w_max]. The vineyard env does not
+  auto-reset here: brax's training wrappers (or `BraxAdapter`) do. `metrics["success"]`
+  is 1 at a successful step, so brax's evaluator reports `eval/episode_success`."""
+
+  def __init__(self, cfg, pool: tuple[int, int] = (8, 8)):
+    from mjxvine.env import VineyardEnv  # pylint: disable=import-outside-toplevel
+    cam = cfg.camera
+    if cam.height % pool[0] or cam.width % pool[1]:
+      raise ValueError(f"camera {cam.height}x{cam.width} is not a multiple of pool {pool}")
+    self.cfg = cfg
+    self.pool = pool
+    self.inner = VineyardEnv(cfg, auto_reset=False)
+
+  def _flat(self, obs: dict) -> jax.Array:
+    h, w = self.pool
+    d = obs["depth"][..., 0]
+    d = d.reshape(h, d.shape[0] // h, w, d.shape[1] // w).mean(axis=(1, 3))
+    return jp.concatenate([d.reshape(-1) / self.cfg.camera.max_depth_m, obs["state"]])
+
+  def reset(self, rng: jax.Array) -> State:
+    state = self.inner.reset(rng)
+    return state.replace(obs=self._flat(state.obs))
+
+  def step(self, state: State, action: jax.Array) -> State:
+    low, high = self.inner.action_low, self.inner.action_high
+    physical = low + (jp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+    new = self.inner.step(state, physical)
+    return new.replace(obs=self._flat(new.obs))
+
+  @property
+  def observation_size(self) -> int:
+    return self.pool[0] * self.pool[1] + 3
+
+  @property
+  def action_size(self) -> int:
+    return 2
+
+  @property
+  def backend(self) -> str:
+    return "mjx"

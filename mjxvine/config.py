@@ -95,6 +95,9 @@ class EnvConfig:
   pose_reset_every: int = _f(10, 1, 100000, doc="episodes between new start poses")
   start_yaw_jitter_deg: float = _f(10.0, 0.0, 90.0)
   start_lateral_jitter_m: float = _f(0.1, 0.0, 1.0)
+  start_directions: str = _f("both", choices=("both", "forward", "reverse"),
+                             doc="travel directions of random starts (forward: +x, world "
+                             "yaw near 0; reverse: yaw near +-pi, where the yaw input wraps)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,6 +122,8 @@ class SACConfig:
   log_std_min: float = _f(-20.0, -100.0, 0.0)
   log_std_max: float = _f(2.0, -10.0, 10.0)
   grad_steps_per_iter: int = _f(1, 1, 1 << 16, doc="gradient steps per training iteration")
+  reward_scale: float = _f(1.0, 1e-6, 1e6, doc="rewards are multiplied by this before the "
+                           "replay (1: the paper; returns are logged unscaled)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +137,12 @@ class TrainConfig:
   checkpoint_every_chunks: int = _f(10, 1, 1 << 20)
   save_replay: bool = _f(False)
   num_seeds: int = _f(1, 1, 1024)
+  sweep: str = _f("", doc="grid of hyper-parameters trained at once with the seeds (vmap), "
+                  "e.g. 'sac.learning_rate=1e-4,1e-3; sac.alpha=0.1,0.2'")
+  devices: int = _f(0, 0, 1 << 16, doc="devices the envs, replay and batches are split over "
+                    "(0: all; see mjxvine.parallel)")
+  max_minutes: float = _f(0.0, 0.0, 1e6, doc="wall-clock budget: stop (checkpoint, evaluate) "
+                          "after the chunk that passes it (0: none)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,8 +240,33 @@ def _check_cross_fields(cfg: Config) -> None:
   if abs(steps - round(steps)) > 1e-6:
     raise ConfigError(f"env.physics_dt = {cfg.env.physics_dt}: must divide env.control_dt "
                       f"= {cfg.env.control_dt}")
+  parse_sweep(cfg.train.sweep)
   if cfg.sac.log_std_min >= cfg.sac.log_std_max:
     raise ConfigError(f"sac.log_std_min = {cfg.sac.log_std_min}: must be < sac.log_std_max")
+
+
+# Hyper-parameters that a vmapped sweep may vary (they live in the learner state).
+SWEEPABLE = ("sac.learning_rate", "sac.alpha")
+
+
+def parse_sweep(text: str) -> dict[str, tuple[float, ...]]:
+  """'sac.learning_rate=1e-4,1e-3; sac.alpha=0.1' -> {"sac.learning_rate": (1e-4, 1e-3),
+  "sac.alpha": (0.1,)}; raises ConfigError naming train.sweep on a bad entry."""
+  out = {}
+  for item in filter(None, (x.strip() for x in text.split(";"))):
+    key, _, values = item.partition("=")
+    key = key.strip()
+    if key not in SWEEPABLE:
+      raise ConfigError(f"train.sweep: {key!r} cannot be swept (sweepable: "
+                        f"{', '.join(SWEEPABLE)})")
+    try:
+      vals = tuple(float(v) for v in values.split(","))
+    except ValueError:
+      raise ConfigError(f"train.sweep: {item!r}: expected {key}=v1,v2,...") from None
+    if not all(math.isfinite(v) and v > 0 for v in vals):
+      raise ConfigError(f"train.sweep: {item!r}: values must be positive numbers")
+    out[key] = vals
+  return out
 
 
 def _set_nested(data: dict, dotted: str, value: str) -> None:
@@ -303,4 +339,5 @@ __all__ = [
     "Config", "ConfigError", "WorldConfig", "RobotConfig", "CameraConfig", "EnvConfig",
     "SACConfig", "TrainConfig", "EvalConfig", "load_config", "to_dict", "to_yaml",
     "config_hash", "add_config_args", "config_from_args", "replace", "ROBOT_WIDTH_M",
+    "SWEEPABLE", "parse_sweep",
 ]

@@ -157,7 +157,8 @@ class VineyardEnv(Env):
     env = self.cfg.env
     world = jax.random.randint(kw, (), 0, len(self.worlds))
     lane = jax.random.randint(kl, (), 0, self.lanes.count[world])
-    direction = jp.where(jax.random.bernoulli(kd), jp.float32(1), jp.float32(-1))
+    p_forward = {"both": 0.5, "forward": 1.0, "reverse": 0.0}[env.start_directions]
+    direction = jp.where(jax.random.bernoulli(kd, p_forward), jp.float32(1), jp.float32(-1))
     length = self.worlds[0].length_m
     along = jax.random.uniform(ka, (), minval=0.0, maxval=0.6 * length)
     lateral = jax.random.uniform(kx, (), minval=-1.0, maxval=1.0) * env.start_lateral_jitter_m

@@ -24,7 +24,7 @@ import jax.numpy as jp
 import numpy as np
 
 from mjxvine.config import Config, add_config_args, config_from_args, replace
-from mjxvine.env import OUTCOMES, SUCCESS, VineyardEnv, pure_pursuit
+from mjxvine.env import OUTCOMES, RUNNING, SUCCESS, VineyardEnv, pure_pursuit
 from mjxvine.worlds import Vineyard, make_world
 
 # The paper's Table (SPEC section 7): lane-direction -> (MAE, RMSE, v, v_std, w, w_std, succ)
@@ -121,6 +121,28 @@ def rollout(env: VineyardEnv, policy: Policy, lanes, directions, key, max_steps:
   xy, act, alive = (np.concatenate(x)[:max_steps] for x in (xy, act, alive))
   outcome[outcome == 0] = OUTCOMES.index("timeout")
   return xy, act, alive, outcome, alive.sum(0)
+
+
+def start_outcomes(env: VineyardEnv, policy: Callable, params, key: jax.Array,
+                   episodes: int) -> jax.Array:
+  """Outcome codes (episodes,) of one episode each from the env's own random starts (its
+  train-world pool, `env.reset`), run batched under one `lax.scan` of env.max_steps.
+  `policy(params, state, key) -> action` (one env) takes its parameters as an argument,
+  so that one compiled rollout serves every policy of that shape (jit it with
+  `env`/`policy`/`episodes` static). The quick check of a training run."""
+  k_reset, k_run = jax.random.split(key)
+  state = jax.vmap(env.reset)(jax.random.split(k_reset, episodes))
+
+  def body(carry, k):
+    state, outcome = carry
+    action = jax.vmap(policy, (None, 0, 0))(params, state, jax.random.split(k, episodes))
+    state, _ = env.step_batch(state, action)
+    first = (outcome == RUNNING) & (state.done > 0)
+    return (state, jp.where(first, state.info["last_outcome"], outcome)), None
+
+  (_, outcome), _ = jax.lax.scan(body, (state, jp.zeros(episodes, jp.int32)),
+                                 jax.random.split(k_run, env.cfg.env.max_steps))
+  return outcome
 
 
 def _summary(errs, acts, outcomes, steps, dt) -> dict:

@@ -114,6 +114,22 @@ def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array, target_entropy: float)
   return -jnp.mean(log_alpha * jax.lax.stop_gradient(log_prob + target_entropy))
 
 
+def with_hyperparams(state: LearnerState, learning_rate=None, alpha=None) -> LearnerState:
+  """`state` with the actor and critic learning rate and/or the entropy temperature
+  replaced (arrays shaped like the state's own: () or (members,) under a vmap)."""
+  if learning_rate is not None:
+    def set_lr(opt_state):
+      lr = jnp.broadcast_to(jnp.asarray(learning_rate, jnp.float32),
+                            opt_state.hyperparams["learning_rate"].shape)
+      return opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
+    state = state.replace(actor_opt_state=set_lr(state.actor_opt_state),
+                          critic_opt_state=set_lr(state.critic_opt_state))
+  if alpha is not None:
+    state = state.replace(log_alpha=jnp.broadcast_to(
+        jnp.log(jnp.asarray(alpha, jnp.float32)), state.log_alpha.shape))
+  return state
+
+
 def polyak(target: Params, online: Params, tau: float) -> Params:
   """Soft update: target <- (1 - tau) * target + tau * online, leaf by leaf."""
   return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
@@ -142,14 +158,20 @@ class SAC(NamedTuple):
   act_deterministic: Callable
 
 
-def make_sac(nets: nw.SACNetworks, cfg: SACConfig, unroll: int | bool | None = None) -> SAC:
+def make_sac(nets: nw.SACNetworks, cfg: SACConfig, unroll: int | bool | None = None,
+             shard_batch: Callable = lambda batch: batch) -> SAC:
   """Builds the SAC learner for `nets` with hyper-parameters `cfg`.
+
+  shard_batch: applied to every sampled batch in `update_many`; `mjxvine.parallel`'s
+  `batch_constraint` splits it over the devices (data-parallel gradients).
 
   unroll: `lax.scan` unroll of `update_many`. None: fully unrolled on the CPU backend
   when grad_steps_per_iter <= 16 (XLA:CPU runs convolutions inside a loop body ~20x
   slower, jax-ml/jax#12868), else 1 (a rolled loop: fast compiles on GPU).
   """
-  opt = optax.adam(cfg.learning_rate)
+  # The learning rate lives in the optimiser state (inject_hyperparams), so that runs
+  # vmapped over seeds can also differ in it (`mjxvine.train` sweeps).
+  opt = optax.inject_hyperparams(optax.adam)(learning_rate=cfg.learning_rate)
   if unroll is None:
     unroll = jax.default_backend() == "cpu" and cfg.grad_steps_per_iter <= 16
 
@@ -200,7 +222,7 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig, unroll: int | bool | None = N
   def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array):
     def body(st, k):
       k_sample, k_update = jax.random.split(k)
-      return update(st, sample(buffer, k_sample, cfg.batch_size), k_update)
+      return update(st, shard_batch(sample(buffer, k_sample, cfg.batch_size)), k_update)
     state, metrics = jax.lax.scan(body, state, jax.random.split(key, cfg.grad_steps_per_iter),
                                   unroll=unroll)
     return state, jax.tree.map(jnp.mean, metrics)

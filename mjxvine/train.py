@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import functools
+import itertools
 import json
 import math
 import sys
@@ -31,9 +32,10 @@ import jax.numpy as jp
 import numpy as np
 
 from mjxvine import networks as nw
+from mjxvine import parallel
 from mjxvine import sac as sac_lib
-from mjxvine.config import (Config, add_config_args, config_from_args, load_config, replace,
-                            to_yaml)
+from mjxvine.config import (Config, add_config_args, config_from_args, load_config,
+                            parse_sweep, replace, to_yaml)
 from mjxvine.env import SUCCESS, VineyardEnv
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "default.yaml"
@@ -59,9 +61,10 @@ class NonFiniteError(RuntimeError):
   """A loss or a parameter became NaN or infinite."""
 
 
-def make_trainer(cfg: Config, env):
+def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
   """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
-  iteration(TrainState, None) -> (TrainState, metrics), summarize)."""
+  iteration(TrainState, None) -> (TrainState, metrics), summarize). `shard_batch`: see
+  `mjxvine.sac.make_sac` (data parallelism over devices)."""
   n = cfg.env.num_envs
   # The action box comes from the env: the vineyard's [0, v_max] x [-w_max, w_max], or
   # [-1, 1] for a brax env behind `BraxAdapter`.
@@ -69,7 +72,7 @@ def make_trainer(cfg: Config, env):
                           conv_features=cfg.sac.conv_features,
                           depth_scale=1.0 / cfg.camera.max_depth_m,
                           log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max)
-  sac = sac_lib.make_sac(nets, cfg.sac)
+  sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch)
   warmup = cfg.sac.warmup_steps
 
   def init(key: jax.Array) -> TrainState:
@@ -98,7 +101,8 @@ def make_trainer(cfg: Config, env):
     env_state, final_obs = env.step_batch(ts.env_state, action)
     done = env_state.done > 0
     truncated = done & (env_state.info["truncation"] > 0)
-    tr = sac_lib.Transition(obs=obs, action=action, reward=env_state.reward,
+    tr = sac_lib.Transition(obs=obs, action=action,
+                            reward=env_state.reward * cfg.sac.reward_scale,
                             terminal=(done & ~truncated).astype(jp.float32),
                             truncated=truncated.astype(jp.float32), next_obs=final_obs)
     buffer = sac_lib.insert(ts.buffer, tr)
@@ -152,14 +156,22 @@ def _scan_chunks(cfg: Config) -> bool:
 @functools.lru_cache(maxsize=4)
 def _compiled(cfg: Config, seeds: int, env=None):
   env = VineyardEnv(cfg) if env is None else env
-  sac, init, chunk, iteration, summarize = make_trainer(cfg, env)
+  mesh = parallel.make_mesh(cfg.train.devices)
+  parallel.check_divisible(mesh, cfg.env.num_envs, cfg.sac.batch_size)
+  sac, init, chunk, iteration, summarize = make_trainer(
+      cfg, env, parallel.batch_constraint(mesh, seeds))
   batch = (lambda f: f) if seeds == 1 else jax.vmap
-  init_fn = jax.jit(lambda k: init(k[0])) if seeds == 1 else jax.jit(jax.vmap(init))
-  # Donating the state lets XLA update the replay buffer in place instead of copying it.
+  init_one = (lambda k: init(k[0])) if seeds == 1 else jax.vmap(init)
+  keys = jax.ShapeDtypeStruct((seeds, 2), jp.uint32)
+  shard = parallel.train_state_sharding(jax.eval_shape(init_one, keys), mesh, seeds)
+  init_fn = jax.jit(init_one, out_shardings=shard)
+  # Donating the state lets XLA update the replay buffer in place instead of copying it;
+  # pinning its sharding keeps envs and replay rows on their devices between calls.
+  jit_state = functools.partial(jax.jit, donate_argnums=0, out_shardings=(shard, None))
   if _scan_chunks(cfg):
-    return sac, init_fn, jax.jit(batch(chunk), donate_argnums=0)
-  step_fns = {learn: jax.jit(batch(functools.partial(iteration, learn_now=learn)),
-                            donate_argnums=0) for learn in (False, True)}
+    return sac, init_fn, jit_state(batch(chunk))
+  step_fns = {learn: jit_state(batch(functools.partial(iteration, learn_now=learn)))
+              for learn in (False, True)}
   summarize_fn = jax.jit(batch(summarize))
   n = cfg.env.num_envs
 
@@ -186,7 +198,8 @@ def compiled_trainer(cfg: Config, seeds: int = 1, env=None):
   shapes the compiled program (so a resume in the same process does not recompile).
   `env`: the config's `VineyardEnv` by default, or e.g. a `BraxAdapter`."""
   return _compiled(replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
-                                       "save_replay": False},
+                                       "save_replay": False, "sweep": "", "num_seeds": 1,
+                                       "max_minutes": 0.0},
                            eval={"runs_after_train": 0}), seeds, env)
 
 
@@ -239,8 +252,9 @@ class Checkpoints:
   def restore(self, template):
     """(step, TrainState) of the latest good checkpoint, restored onto `template` (a fresh
     TrainState of the same config), or None."""
-    abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype),
-                            self._payload(template))
+    abstract = jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding),
+        self._payload(template))
     for step in sorted(self.manager.all_steps(), reverse=True):
       try:
         payload = self.manager.restore(step, args=self.ocp.args.StandardRestore(abstract))
@@ -256,7 +270,10 @@ class Checkpoints:
 class Logger:
   """metrics.jsonl + TensorBoard (tensorboardX) + a progress line."""
 
-  def __init__(self, run_dir: Path, total: int, start: int):
+  def __init__(self, run_dir: Path, total: int, start: int, enabled: bool = True):
+    self.enabled = enabled
+    if not enabled:
+      return
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
     self.jsonl = open(run_dir / "metrics.jsonl", "a")
@@ -265,6 +282,8 @@ class Logger:
                     mininterval=2.0, file=sys.stderr)
 
   def log(self, row: dict) -> None:
+    if not self.enabled:
+      return
     self.jsonl.write(json.dumps(row) + "\n")
     self.jsonl.flush()
     for k, v in row.items():
@@ -278,6 +297,8 @@ class Logger:
         f"Lq {row['critic_loss']:.3g} Lpi {row['actor_loss']:.3g}", refresh=True)
 
   def close(self):
+    if not self.enabled:
+      return
     self.bar.close()
     self.tb.close()
     self.jsonl.close()
@@ -295,18 +316,22 @@ def plot_learning_curve(run_dir: Path) -> None:
   rows = [json.loads(l) for l in (run_dir / "metrics.jsonl").read_text().splitlines() if l]
   if not rows:
     return
-  seeds = sorted({r.get("seed", 0) for r in rows})
+  members = sorted({r.get("member", r.get("seed", 0)) for r in rows})
   fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
-  for s in seeds:
-    rs = [r for r in rows if r.get("seed", 0) == s]
+  for s in members:
+    rs = [r for r in rows if r.get("member", r.get("seed", 0)) == s]
     x = [r["env_steps"] for r in rs]
+    label = ", ".join(f"{k.split('.')[-1]} {v:g}" for k, v in rs[0].items()
+                      if k.startswith("sac.")) or f"seed {rs[0].get('seed', s)}"
+    if any(k.startswith("sac.") for k in rs[0]):
+      label += f", seed {rs[0].get('seed', 0)}"
     for ax, key in zip(axes, ("return_mean", "success_rate", "critic_loss")):
-      ax.plot(x, [np.nan if r[key] is None else r[key] for r in rs], label=f"seed {s}")
+      ax.plot(x, [np.nan if r[key] is None else r[key] for r in rs], label=label)
   for ax, title in zip(axes, ("episode return", "success rate", "critic loss")):
     ax.set_title(title)
     ax.set_xlabel("env steps")
   axes[2].set_yscale("log")
-  if len(seeds) > 1:
+  if len(members) > 1:
     axes[0].legend(fontsize=7)
   fig.tight_layout()
   fig.savefig(run_dir / "learning_curve.png", dpi=110)
@@ -314,16 +339,42 @@ def plot_learning_curve(run_dir: Path) -> None:
 
 
 # ---------------------------------------------------------------------- the run
-def train(cfg: Config, run_dir: Path, *, seeds: int = 1, resume: bool = False,
-          evaluate_at_end: bool = True, quiet: bool = False, env=None) -> dict:
-  """Trains (or resumes) a run; returns the final log row of seed 0. `env` defaults to
+def sweep_members(cfg: Config) -> list[dict]:
+  """The runs trained at once: every combination of `train.sweep`'s values, each with
+  `train.num_seeds` seeds. One dict per member: {"seed": i, "sac.learning_rate": ...}."""
+  grid = parse_sweep(cfg.train.sweep)
+  combos = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
+  return [{"seed": s, **combo} for combo in combos for s in range(cfg.train.num_seeds)]
+
+
+def init_members(cfg: Config, init_fn, members: list[dict]):
+  """The initial TrainState of every member (a leading members axis if more than one):
+  member seeds share keys across sweep values, so a sweep compares like with like."""
+  keys = jax.random.split(jax.random.PRNGKey(cfg.train.seed), cfg.train.num_seeds)
+  ts = init_fn(keys[np.array([m["seed"] for m in members])])
+  values = lambda k: (np.array([m[k] for m in members], np.float32)
+                      if k in members[0] else None)
+  lr, alpha = values("sac.learning_rate"), values("sac.alpha")
+  if lr is None and alpha is None:
+    return ts
+  learner = sac_lib.with_hyperparams(ts.learner, learning_rate=lr, alpha=alpha)
+  return ts.replace(learner=jax.device_put(learner, jax.tree.map(lambda x: x.sharding,
+                                                                  ts.learner)))
+
+
+def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: bool = True,
+          quiet: bool = False, env=None) -> dict:
+  """Trains (or resumes) a run; returns the final log row of member 0. Trains
+  `train.num_seeds` seeds times the `train.sweep` grid at once (vmap). `env` defaults to
   the config's vineyard pool; another env (a `BraxAdapter`) trains the same way, without
   the vineyard evaluation at the end."""
   run_dir.mkdir(parents=True, exist_ok=True)
   (run_dir / "config.yaml").write_text(to_yaml(cfg))
+  members = sweep_members(cfg)
+  seeds = len(members)
   sac, init_fn, chunk_fn = compiled_trainer(cfg, seeds, env)
   evaluate_at_end = evaluate_at_end and env is None
-  ts = init_fn(jax.random.split(jax.random.PRNGKey(cfg.train.seed), seeds))
+  ts = init_members(cfg, init_fn, members)
   nbytes = sac_lib.buffer_nbytes(ts.buffer)
   ckpt = Checkpoints(run_dir, cfg.train.save_replay)
   chunk_index = 0
@@ -341,11 +392,21 @@ def train(cfg: Config, run_dir: Path, *, seeds: int = 1, resume: bool = False,
     print(f"run {run_dir}: {seeds} seed(s) x {cfg.env.num_envs} envs, {total_chunks} chunks of "
           f"{steps_per_chunk} env steps; replay {nbytes / 2**20:.1f} MiB per seed "
           f"({nbytes / max(cfg.sac.buffer_size, 1):.0f} B/transition); device "
-          f"{jax.devices()[0].device_kind}", file=sys.stderr)
-  logger = Logger(run_dir, total_chunks * steps_per_chunk, chunk_index * steps_per_chunk)
-  last_row, t_compile = {}, None
+          f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}",
+          file=sys.stderr)
+  # Multi-host: every process runs the same program; process 0 writes logs and reports.
+  primary = jax.process_index() == 0
+  logger = Logger(run_dir, total_chunks * steps_per_chunk, chunk_index * steps_per_chunk,
+                  enabled=primary)
+  last_row, t_compile, t_start = {}, None, time.time()
   try:
     while chunk_index < total_chunks:
+      if cfg.train.max_minutes and time.time() - t_start > 60 * cfg.train.max_minutes:
+        print(f"train.max_minutes = {cfg.train.max_minutes} reached after chunk "
+              f"{chunk_index}: stopping", file=sys.stderr)
+        if ckpt.manager.latest_step() != chunk_index:
+          ckpt.save(chunk_index, ts)
+        break
       t0 = time.time()
       ts, m = chunk_fn(ts)
       m = jax.device_get(m)
@@ -365,7 +426,8 @@ def train(cfg: Config, run_dir: Path, *, seeds: int = 1, resume: bool = False,
         get = (lambda x: np.reshape(x, (-1,))[s])
         eps_done = int(get(host[2]))
         row = {
-            "seed": s, "chunk": chunk_index, "env_steps": int(get(host[0])),
+            **members[s], "member": s,
+            "chunk": chunk_index, "env_steps": int(get(host[0])),
             "episodes": int(get(host[1])),
             "return_mean": float(get(host[3]) / eps_done) if eps_done else None,
             "success_rate": float(get(host[4]) / eps_done) if eps_done else None,
@@ -385,6 +447,8 @@ def train(cfg: Config, run_dir: Path, *, seeds: int = 1, resume: bool = False,
         ckpt.save(chunk_index, ts)
   finally:
     logger.close()
+  if not primary:
+    return last_row
   plot_learning_curve(run_dir)
   if evaluate_at_end and cfg.eval.runs_after_train > 0:
     from mjxvine import evaluate as ev
@@ -418,9 +482,19 @@ def main(argv=None) -> int:
   p.add_argument("--run-dir", default=None, help="run directory (default runs/<time>)")
   p.add_argument("--resume", default=None, metavar="RUN_DIR",
                  help="continue an interrupted run from its last checkpoint")
-  p.add_argument("--seeds", type=int, default=None, help="train K seeds at once (vmap)")
+  p.add_argument("--seeds", type=int, default=None,
+                 help="train K seeds at once (vmap); sets train.num_seeds")
+  p.add_argument("--sweep", action="append", default=[], metavar="SECTION.KEY=V1,V2",
+                 help="also sweep a hyper-parameter at once (vmap; repeatable: a grid); "
+                 "sets train.sweep")
   p.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+  p.add_argument("--distributed", action="store_true",
+                 help="multi-host: call jax.distributed.initialize() (coordinator, process "
+                 "count and id from the cluster environment) and train over every host's "
+                 "devices")
   args = p.parse_args(argv)
+  if args.distributed:
+    jax.distributed.initialize()
   if args.resume:
     run_dir = Path(args.resume)
     resolved = run_dir / "config.yaml"
@@ -430,20 +504,24 @@ def main(argv=None) -> int:
     cfg = config_from_args(argparse.Namespace(config=str(resolved), overrides=args.overrides))
     changed = [f"{s}.{k}" for s in ("world", "robot", "camera", "env", "sac", "train", "eval")
                for k, v in vars(getattr(cfg, s)).items() if getattr(getattr(old, s), k) != v]
-    if any(c not in ("train.total_env_steps", "eval.runs_after_train") for c in changed):
+    if any(c not in ("train.total_env_steps", "train.max_minutes", "eval.runs_after_train")
+           for c in changed):
       raise SystemExit(f"--resume: only train.total_env_steps may change, not {changed}")
   else:
     if args.config is None and DEFAULT_CONFIG.is_file():
       args.config = str(DEFAULT_CONFIG)
-    cfg = config_from_args(args)
+    extra = [f"train.num_seeds={args.seeds}"] if args.seeds else []
+    if args.sweep:
+      extra.append("train.sweep=" + "; ".join(args.sweep))
+    cfg = config_from_args(args, extra)
     run_dir = Path(args.run_dir or f"runs/{datetime.datetime.now():%Y%m%d-%H%M%S}")
     if (run_dir / "checkpoints").exists():
       raise SystemExit(f"{run_dir} already holds a run: use --resume {run_dir} or another "
                        "--run-dir")
-  seeds = args.seeds or cfg.train.num_seeds
+  if args.resume and (args.seeds or args.sweep):
+    raise SystemExit("--resume: the seeds and sweep come from the run's config.yaml")
   try:
-    row = train(cfg, run_dir, seeds=seeds, resume=bool(args.resume),
-                evaluate_at_end=not args.no_eval)
+    row = train(cfg, run_dir, resume=bool(args.resume), evaluate_at_end=not args.no_eval)
   except NonFiniteError as e:
     print(f"error: {e}", file=sys.stderr)
     return 3

@@ -1,0 +1,52 @@
+"""Run by tests/test_parallel.py in a fresh process with 4 host CPU devices (the XLA flag
+must be set before JAX starts): trains one chunk on 1 device and on 4 devices and prints
+a JSON comparison. The chunk's last iteration is the first gradient step."""
+
+import os
+
+os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                           " --xla_force_host_platform_device_count=4")
+
+import json  # noqa: E402
+import sys  # noqa: E402
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+from mjxvine import train  # noqa: E402
+from mjxvine.config import load_config  # noqa: E402
+
+OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=4", "env.max_steps=8",
+             "sac.batch_size=16", "sac.buffer_size=256", "sac.warmup_steps=20",
+             "sac.hidden=16", "sac.conv_features=4", "train.iters_per_chunk=5",
+             "train.chunk_loop=scan",
+             "world.pool_size=2", "world.train_length_m=6"]
+
+
+def one_chunk(devices: int):
+  cfg = load_config("experiments/smoke.yaml", OVERRIDES + [f"train.devices={devices}"])
+  _, init_fn, chunk_fn = train.compiled_trainer(cfg)
+  ts = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
+  ts, metrics = chunk_fn(ts)
+  return ts, jax.device_get(metrics)
+
+
+def main():
+  out = {"devices": jax.device_count()}
+  (ts1, m1), (ts4, m4) = one_chunk(1), one_chunk(4)
+  out["depth_sharding"] = [str(ts1.buffer.depth.sharding.spec),
+                           str(ts4.buffer.depth.sharding.spec)]
+  out["env_devices"] = len(ts4.env_state.obs["depth"].sharding.device_set)
+  out["metric_keys_equal"] = sorted(m1) == sorted(m4)
+  out["critic_loss"] = [float(m1["critic_loss"]), float(m4["critic_loss"])]
+  out["finite"] = bool(all(np.all(np.isfinite(v)) for m in (m1, m4) for v in m.values()))
+  p1 = jax.tree.leaves(jax.device_get(ts1.learner))
+  p4 = jax.tree.leaves(jax.device_get(ts4.learner))
+  out["max_param_diff"] = max(float(np.max(np.abs(np.asarray(a, np.float64) - b)))
+                              for a, b in zip(p1, p4) if np.size(a))
+  out["updates"] = [int(ts1.learner.step), int(ts4.learner.step)]
+  json.dump(out, sys.stdout)
+
+
+if __name__ == "__main__":
+  main()
