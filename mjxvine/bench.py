@@ -34,6 +34,7 @@ Sub-commands
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -465,13 +466,14 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
                      success=float(metrics["eval/episode_success"]),
                      episode_return=float(metrics["eval/episode_reward"])))
 
-  brax_sac.train(
-      environment=venv, num_timesteps=args.steps, episode_length=length, num_envs=n,
-      num_eval_envs=args.eval_envs, learning_rate=c.learning_rate, discounting=c.gamma,
-      seed=cfg.train.seed, batch_size=c.batch_size, num_evals=args.evals + 1,
-      reward_scaling=c.reward_scale, tau=c.tau, min_replay_size=c.warmup_steps,
-      max_replay_size=c.buffer_size, grad_updates_per_step=c.grad_steps_per_iter,
-      deterministic_eval=True, progress_fn=progress)
+  with _brax_jax_compat():
+    brax_sac.train(
+        environment=venv, num_timesteps=args.steps, episode_length=length, num_envs=n,
+        num_eval_envs=args.eval_envs, learning_rate=c.learning_rate, discounting=c.gamma,
+        seed=cfg.train.seed, batch_size=c.batch_size, num_evals=args.evals + 1,
+        reward_scaling=c.reward_scale, tau=c.tau, min_replay_size=c.warmup_steps,
+        max_replay_size=c.buffer_size, grad_updates_per_step=c.grad_steps_per_iter,
+        deterministic_eval=True, progress_fn=progress)
 
   # mjxvine: the same setting through BraxAdapter, evaluated by the same Evaluator.
   ours = config_lib.replace(
@@ -497,12 +499,30 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
     template = train_lib.compiled_trainer(ours, env=adapter)[1](
         jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
     restored = train_lib.Checkpoints(run, False).restore(template) if k else None
-    params = (restored[1] if restored else template).learner.actor_params
-    m = evaluator.run_evaluation(params, training_metrics={})
-    rows.append(dict(learner="mjxvine.sac", env_steps=int(steps if k else 0), train_s=train_s,
+    state = restored[1] if restored else template
+    m = evaluator.run_evaluation(state.learner.actor_params, training_metrics={})
+    rows.append(dict(learner="mjxvine.sac", env_steps=int(state.env_steps), train_s=train_s,
                      success=float(m["eval/episode_success"]),
                      episode_return=float(m["eval/episode_reward"])))
   return rows, {"summary": brax_summary(rows, args.target), "target_success": args.target}
+
+
+@contextlib.contextmanager
+def _brax_jax_compat():
+  """brax 0.14's SAC still calls `jax.device_put_replicated`, which JAX 0.10 removed;
+  provide its replacement (a leading device axis, as `jax.pmap` expects) while it runs."""
+  if "device_put_replicated" in vars(jax):
+    yield
+    return
+
+  def device_put_replicated(x, devices):
+    return jax.tree.map(lambda a: jax.device_put(jp.stack([jp.asarray(a)] * len(devices))), x)
+
+  jax.device_put_replicated = device_put_replicated
+  try:
+    yield
+  finally:
+    del jax.device_put_replicated
 
 
 def brax_summary(rows: list[dict], target: float) -> dict:

@@ -100,7 +100,8 @@ class VectorObsEnv(Env):
     low, high = self.inner.action_low, self.inner.action_high
     physical = low + (jp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
     new = self.inner.step(state, physical)
-    return new.replace(obs=self._flat(new.obs))
+    # keep metrics that wrappers added (brax's EpisodeWrapper tracks "reward")
+    return new.replace(obs=self._flat(new.obs), metrics={**state.metrics, **new.metrics})
 
   @property
   def observation_size(self) -> int:

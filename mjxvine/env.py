@@ -208,7 +208,7 @@ class VineyardEnv(Env):
     prev_action = jp.zeros(2, jp.float32)
     obs = self._observe(m, d, prev_action, k_obs)
     info = dict(
-        pose=pose, rng=k_next, episodes=episodes, steps=jp.int32(0),
+        pose=pose, rng=k_next, episodes=episodes, episode_steps=jp.int32(0),
         prev_action=prev_action, dist=jp.linalg.norm(d.qpos[:2] - pose["eor"]),
         truncation=jp.float32(0), outcome=jp.int32(RUNNING), episode_return=jp.float32(0),
         last_return=jp.float32(0), last_outcome=jp.int32(RUNNING), last_length=jp.int32(0))
@@ -267,7 +267,7 @@ class VineyardEnv(Env):
     collision = self.plant_clearance(m, xy, yaw) < env.collision_margin_m
     left_lane = jp.abs(lateral) > half_lane
     reversed_ = jp.abs(heading_err) > jp.deg2rad(env.yaw_limit_deg)
-    steps = info["steps"] + 1
+    steps = info["episode_steps"] + 1
     timeout = steps >= env.max_steps
     outcome = jp.select(
         [exploded, success, collision, left_lane, reversed_, timeout],
@@ -286,7 +286,7 @@ class VineyardEnv(Env):
     k_obs, k_next = jax.random.split(info["rng"])
     obs = self._observe(m, d, action, k_obs)
     ret = info["episode_return"] + reward
-    new_info = dict(info, rng=k_next, steps=steps, prev_action=action, dist=dist,
+    new_info = dict(info, rng=k_next, episode_steps=steps, prev_action=action, dist=dist,
                     truncation=truncation.astype(jp.float32), outcome=outcome,
                     episode_return=ret,
                     last_return=jp.where(done, ret, info["last_return"]),

@@ -310,8 +310,6 @@ def _f(x):
 
 def plot_learning_curve(run_dir: Path) -> None:
   """learning_curve.png from metrics.jsonl: return, success rate and losses."""
-  import matplotlib
-  matplotlib.use("Agg")
   import matplotlib.pyplot as plt
   rows = [json.loads(l) for l in (run_dir / "metrics.jsonl").read_text().splitlines() if l]
   if not rows:

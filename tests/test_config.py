@@ -76,3 +76,28 @@ def test_experiment_configs_load():
   assert {"paper.yaml", "smoke.yaml"} <= {f.name for f in files}
   for f in files:
     load_config(f)
+
+
+def test_sweep_grid_and_its_errors():
+  from mjxvine.train import sweep_members
+  cfg = load_config(None, ["train.num_seeds=2",
+                           "train.sweep=sac.learning_rate=1e-4,1e-3; sac.alpha=0.1"])
+  members = sweep_members(cfg)
+  assert members == [
+      {"seed": 0, "sac.learning_rate": 1e-4, "sac.alpha": 0.1},
+      {"seed": 1, "sac.learning_rate": 1e-4, "sac.alpha": 0.1},
+      {"seed": 0, "sac.learning_rate": 1e-3, "sac.alpha": 0.1},
+      {"seed": 1, "sac.learning_rate": 1e-3, "sac.alpha": 0.1}]
+  assert sweep_members(load_config()) == [{"seed": 0}]
+  for bad, match in (("sac.gamma=0.9", "cannot be swept"), ("sac.alpha=x", "expected"),
+                     ("sac.alpha=-1", "positive")):
+    with pytest.raises(ConfigError, match=f"^train.sweep.*{match}"):
+      load_config(None, [f"train.sweep={bad}"])
+
+
+def test_new_choices_are_checked():
+  assert load_config(None, ["env.start_directions=forward"]).env.start_directions == "forward"
+  with pytest.raises(ConfigError, match="^env.start_directions"):
+    load_config(None, ["env.start_directions=sideways"])
+  with pytest.raises(ConfigError, match="^sac.reward_scale"):
+    load_config(None, ["sac.reward_scale=0"])

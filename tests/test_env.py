@@ -91,7 +91,7 @@ def test_terminations(env, fns):
   assert 990 < float(s2.reward[3]) < 1010
   assert np.all(s2.done == 1) and np.all(s2.info["truncation"] == 0)
   # the auto-reset started them again, from the same start pose
-  assert np.all(s2.info["steps"] == 0) and np.all(s2.info["episodes"] == 1)
+  assert np.all(s2.info["episode_steps"] == 0) and np.all(s2.info["episodes"] == 1)
   np.testing.assert_allclose(s2.pipeline_state.qpos[:, :2], s.pipeline_state.qpos[:, :2],
                              atol=1e-5)
 

@@ -410,3 +410,23 @@ def test_update_many_with_depth_buffer():
   learner, metrics = run(learner, buffer, key)
   assert int(learner.step) == 2
   assert all(np.isfinite(float(v)) for v in metrics.values())
+
+
+def test_learning_rate_lives_in_the_state_and_vmaps(tiny):
+  """`with_hyperparams` sets the learning rate per vmapped member: lr 0 leaves the
+  networks unchanged, and a member's step size scales with its own rate."""
+  nets, _, _, _, batch, _ = tiny
+  agent = sac.make_sac(nets, SACConfig())
+  keys = jax.random.split(jax.random.PRNGKey(1), 3)
+  states = jax.vmap(agent.init, (0, None))(keys[:1].repeat(3, 0), batch.obs)
+  states = sac.with_hyperparams(states, learning_rate=np.array([0.0, 1e-4, 1e-3]),
+                                alpha=np.array([0.1, 0.2, 0.3]))
+  np.testing.assert_allclose(np.exp(states.log_alpha), [0.1, 0.2, 0.3], rtol=1e-6)
+  new, _ = jax.jit(jax.vmap(agent.update, (0, None, None)))(states, batch,
+                                                            jax.random.PRNGKey(2))
+  step = [max(float(np.max(np.abs(a[i] - b[i]))) for a, b in
+              zip(jax.tree.leaves(new.actor_params), jax.tree.leaves(states.actor_params)))
+          for i in range(3)]
+  assert step[0] == 0.0
+  # Adam's first step is ~lr per parameter
+  assert step[1] == pytest.approx(1e-4, rel=0.05) and step[2] == pytest.approx(1e-3, rel=0.05)

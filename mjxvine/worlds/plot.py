@@ -1,14 +1,12 @@
-"""Top-down maps of vineyards (matplotlib, headless)."""
+"""Top-down maps of vineyards (matplotlib; headless machines fall back to Agg, and the
+backend is left to the caller, so that notebooks keep theirs)."""
 
 from __future__ import annotations
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from mjxvine.worlds.layout import Vineyard  # noqa: E402
+from mjxvine.worlds.layout import Vineyard
 
 
 def draw_vineyard(ax, world: Vineyard, *, numbers: bool = True, terrain: bool = True) -> None:
