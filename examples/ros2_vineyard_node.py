@@ -97,7 +97,10 @@ class VineyardNode(Node):
 
   def on_imu(self, msg: Imu) -> None:
     q = msg.orientation
-    self.yaw, self.yaw_time = quaternion_yaw(q.x, q.y, q.z, q.w), self.now()
+    # the policy's yaw input is the IMU yaw plus its training offset, wrapped to [-pi, pi)
+    offset = math.radians(float(self.policy.meta.get("yaw_offset_deg", 0.0)))
+    yaw = quaternion_yaw(q.x, q.y, q.z, q.w) + offset
+    self.yaw, self.yaw_time = (yaw + math.pi) % (2 * math.pi) - math.pi, self.now()
 
   def on_timer(self) -> None:
     now, twist = self.now(), Twist()

@@ -95,6 +95,9 @@ class EnvConfig:
   pose_reset_every: int = _f(10, 1, 100000, doc="episodes between new start poses")
   start_yaw_jitter_deg: float = _f(10.0, 0.0, 90.0)
   start_lateral_jitter_m: float = _f(0.1, 0.0, 1.0)
+  yaw_offset_deg: float = _f(0.0, -180.0, 180.0, doc="added to the world yaw of the state "
+                             "input (an IMU's yaw reference is arbitrary; 90 keeps the rows' "
+                             "two directions away from the +-pi wrap)")
   start_directions: str = _f("both", choices=("both", "forward", "reverse"),
                              doc="travel directions of random starts (forward: +x, world "
                              "yaw near 0; reverse: yaw near +-pi, where the yaw input wraps)")

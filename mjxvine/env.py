@@ -221,7 +221,7 @@ class VineyardEnv(Env):
     image = depth_cam.render_depth(self.camera, m, d)
     k = self.noise_factor if noise_factor is None else noise_factor
     noisy = depth_cam.add_noise(image, key, self.camera, k)
-    yaw = _yaw(d.qpos[3:7])
+    yaw = _wrap(_yaw(d.qpos[3:7]) + jp.deg2rad(self.cfg.env.yaw_offset_deg))
     return {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
 
   def plant_clearance(self, m: mjx.Model, xy: jax.Array, yaw: jax.Array) -> jax.Array:

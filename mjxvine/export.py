@@ -54,6 +54,8 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
       "max_depth_m": cfg.camera.max_depth_m, "depth_scale": 1.0 / cfg.camera.max_depth_m,
       "action_low": [0.0, -cfg.env.w_max], "action_high": [cfg.env.v_max, cfg.env.w_max],
       "control_dt": cfg.env.control_dt, "config_hash": config_lib.config_hash(cfg),
+      # the state's yaw is the IMU yaw plus this offset, wrapped to [-pi, pi)
+      "yaw_offset_deg": cfg.env.yaw_offset_deg,
   }
 
 

@@ -1,13 +1,16 @@
-"""`python -m mjxvine.train`: SAC on the batched vineyard env, on one device.
+"""`python -m mjxvine.train`: SAC on the batched vineyard env, on one or many devices.
 
   python -m mjxvine.train --config experiments/smoke.yaml --run-dir runs/smoke
   python -m mjxvine.train --resume runs/smoke --set train.total_env_steps=20000
   python -m mjxvine.train --config experiments/fast.yaml --seeds 4
+  python -m mjxvine.train --config experiments/default.yaml --sweep sac.learning_rate=2e-4,1e-3
 
 One training iteration (N env steps with exploration, one replay insert, G gradient steps)
 is one jit-compiled function; `train.iters_per_chunk` of them run under `lax.scan` (on
-the CPU backend a host loop of the jitted iteration, see `_scan_chunks`); the host only logs, checkpoints and checks for non-finite values between chunks. `--seeds K`
-vmaps the whole training state over K seeds (same config, one compiled program).
+the CPU backend a host loop of the jitted iteration, see `_scan_chunks`); the host only
+logs, checkpoints and checks for non-finite values between chunks. `--seeds K` and
+`--sweep` vmap the whole training state over the members (one compiled program); envs and
+replay are split over the devices (`mjxvine.parallel`).
 
 Run directory: config.yaml (resolved), metrics.jsonl, TensorBoard events (tb/),
 checkpoints/ (orbax), learning_curve.png, eval/ (the final evaluation report).
