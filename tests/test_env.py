@@ -127,3 +127,18 @@ def test_nan_physics_resets_only_that_env(env, fns):
   assert list(np.asarray(s2.done)) == [0, 1, 0, 0]
   assert float(s2.metrics["physics"][1]) == 1 and float(s2.info["truncation"][1]) == 1
   assert float(jp.sum(s2.metrics["physics"])) == 1
+
+
+def test_yaw_offset_and_start_directions():
+  """env.yaw_offset_deg shifts the yaw input (wrapped); start_directions=reverse draws
+  only -x starts, whose world yaw is near +-pi and observed yaw near -pi/2."""
+  cfg = load_config("experiments/smoke.yaml", [
+      "camera.width=16", "camera.height=12", "world.pool_size=1", "env.yaw_offset_deg=90",
+      "env.start_directions=reverse"])
+  env = VineyardEnv(cfg)
+  s = jax.jit(lambda k: env.reset_batch(k, 8))(jax.random.PRNGKey(3))
+  assert np.all(np.asarray(s.info["pose"]["direction"]) == -1)
+  world_yaw = np.asarray(s.info["pose"]["yaw"])
+  observed = np.asarray(s.obs["state"][:, 2])
+  np.testing.assert_allclose(np.cos(observed - world_yaw - np.pi / 2), 1.0, atol=1e-3)
+  assert np.all(np.abs(observed + np.pi / 2) < np.deg2rad(15))
