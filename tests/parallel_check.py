@@ -14,7 +14,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
-from mjxvine import train  # noqa: E402
+from mjxvine import parallel, train  # noqa: E402
 from mjxvine.config import load_config  # noqa: E402
 
 OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=4", "env.max_steps=8",
@@ -24,9 +24,12 @@ OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=4", "env.max_s
              "world.pool_size=2", "world.train_length_m=6"]
 
 
+def config(devices: int):
+  return load_config("experiments/smoke.yaml", OVERRIDES + [f"train.devices={devices}"])
+
+
 def one_chunk(devices: int):
-  cfg = load_config("experiments/smoke.yaml", OVERRIDES + [f"train.devices={devices}"])
-  _, init_fn, chunk_fn = train.compiled_trainer(cfg)
+  _, init_fn, chunk_fn = train.compiled_trainer(config(devices))
   ts = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
   ts, metrics = chunk_fn(ts)
   return ts, jax.device_get(metrics)
@@ -40,8 +43,17 @@ def main():
   out["metric_keys_equal"] = sorted(m1) == sorted(m4)
   out["critic_loss"] = [float(m1["critic_loss"]), float(m4["critic_loss"])]
   out["finite"] = bool(all(np.all(np.isfinite(v)) for m in (m1, m4) for v in m.values()))
-  p1 = jax.tree.leaves(jax.device_get(ts1.learner))
-  p4 = jax.tree.leaves(jax.device_get(ts4.learner))
+  # One update from the same learner state and replay: once on 1 device,
+  # once with the replay split over 4 and the batch split (gradients all-reduced).
+  sac1 = train.compiled_trainer(config(1))[0]
+  sac4 = train.compiled_trainer(config(4))[0]
+  key = jax.random.PRNGKey(5)
+  on4 = jax.device_put(ts1, parallel.train_state_sharding(ts1, parallel.make_mesh(4)))
+  (up1, u1), (up4, u4) = (jax.jit(s.update_many)(t.learner, t.buffer, key)
+                          for s, t in ((sac1, ts1), (sac4, on4)))
+  out["update_critic_loss"] = [float(u1["critic_loss"]), float(u4["critic_loss"])]
+  p1 = jax.tree.leaves(jax.device_get(up1))
+  p4 = jax.tree.leaves(jax.device_get(up4))
   diffs = np.concatenate([np.abs(np.asarray(a, np.float64) - b).ravel()
                           for a, b in zip(p1, p4) if np.size(a)])
   # Adam's first step moves each parameter by about lr * sign(gradient): parameters whose

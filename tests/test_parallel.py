@@ -37,6 +37,9 @@ def test_one_and_four_devices_agree_on_the_first_update(report):
   assert l1 > 0 and abs(l1 - l4) <= 1e-3 * abs(l1)
   # the envs are split, not changed: the same observations on 1 and 4 devices
   assert report["obs_max_diff"] < 1e-3
+  # the same update from the same state and replay, on 1 device and split over 4
+  u1, u4 = report["update_critic_loss"]
+  assert abs(u1 - u4) <= 1e-5 * abs(u1)
   # Adam's first step is ~lr * sign(gradient) per parameter: all but the parameters with
   # near-zero gradients (whose sign depends on the summation order) agree
   assert report["param_diff_frac"] < 0.01
