@@ -452,7 +452,6 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   image average-pooled to `--pool` cells plus the state (the paper's conv tower cannot
   be given to brax's SAC). Each row is one evaluation: env steps, training wall-clock
   (compilation included, evaluation excluded) and success rate."""
-  import functools as ft  # pylint: disable=import-outside-toplevel
   import tempfile  # pylint: disable=import-outside-toplevel
   from brax import envs as brax_envs  # pylint: disable=import-outside-toplevel
   from brax.training.acting import Evaluator  # pylint: disable=import-outside-toplevel
