@@ -495,6 +495,8 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
       num_eval_envs=args.eval_envs, episode_length=length, action_repeat=1,
       key=jax.random.PRNGKey(cfg.train.seed + 1))
   run = Path(tempfile.mkdtemp(prefix="bench-brax-"))
+  template = train_lib.compiled_trainer(ours, env=adapter)[1](
+      jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
   train_s = 0.0
   for k in range(args.evals + 1):
     steps = max(k * per_eval, 1)
@@ -503,8 +505,6 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
       train_lib.train(config_lib.replace(ours, train={"total_env_steps": steps}), run,
                       resume=k > 1, evaluate_at_end=False, quiet=True, env=adapter)
     train_s += time.perf_counter() - t
-    template = train_lib.compiled_trainer(ours, env=adapter)[1](
-        jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
     restored = train_lib.Checkpoints(run, False).restore(template) if k else None
     state = restored[1] if restored else template
     m = evaluator.run_evaluation(state.learner.actor_params, training_metrics={})

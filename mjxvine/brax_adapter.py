@@ -109,8 +109,8 @@ class VectorObsEnv(Env):
 
   @property
   def action_size(self) -> int:
-    return 2
+    return self.inner.action_size
 
   @property
   def backend(self) -> str:
-    return "mjx"
+    return self.inner.backend

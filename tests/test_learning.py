@@ -26,9 +26,9 @@ LEARN = ["world.pool_size=4", "world.train_length_m=4", "camera.width=40", "came
 
 def test_sac_beats_random_on_a_short_straight_lane(tmp_path):
   cfg = load_config(None, LEARN)
-  env = VineyardEnv(cfg)
-  train_mod.train(cfg, tmp_path, quiet=True, evaluate_at_end=False)
-  sac, init_fn, _ = train_mod.compiled_trainer(cfg)
+  env = VineyardEnv(cfg)  # one pool of worlds for training and the check
+  train_mod.train(cfg, tmp_path, quiet=True, evaluate_at_end=False, env=env)
+  sac, init_fn, _ = train_mod.compiled_trainer(cfg, env=env)
   untrained = init_fn(jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
   _, trained = train_mod.Checkpoints(tmp_path, False).restore(untrained)
   assert int(trained.env_steps) == 3200
