@@ -12,8 +12,15 @@ to the policy's size (nearest neighbour, numpy only); invalid pixels (NaN, inf, 
 become the `invalid_depth` parameter (m), then the image is clipped to [0, max_depth]. The
 camera's field of view should match the policy's meta (fovx_deg, fovy_deg): crop the
 image first if it is wider. With no fresh image or IMU reading (older than `timeout_s`)
-the node publishes a stop. Needs rclpy, sensor_msgs and geometry_msgs (not mjxvine
-dependencies); numpy and mjxvine.deploy only otherwise.
+the node publishes a stop.
+
+The yaw input follows the policy's `yaw_reference` (metadata): "start" (this project's
+default) is the IMU yaw relative to the heading at the row entrance. The node takes that
+reference from the first IMU reading, so start it with the robot at the row entrance
+facing down the row; before the next row, call the `zero_heading` service
+(std_srvs/Trigger) with the robot placed the same way. "world" (the paper's input) is the
+IMU yaw plus the policy's `yaw_offset_deg`. Needs rclpy, sensor_msgs, geometry_msgs and
+std_srvs (not mjxvine dependencies); numpy and mjxvine.deploy only otherwise.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from geometry_msgs.msg import Twist
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, Imu
+from std_srvs.srv import Trigger
 
 from mjxvine.deploy import NumpyPolicy
 
@@ -74,7 +82,9 @@ class VineyardNode(Node):
     self.policy = NumpyPolicy.load(path, preprocess=True, blas_threads=1)
     self.invalid = float(self.declare_parameter("invalid_depth", 0.0).value)
     self.depth = self.depth_time = self.yaw = self.yaw_time = None
+    self.imu_yaw = self.yaw_ref = None  # raw IMU yaw and the reference it is measured from
     self.v_prev = self.w_prev = 0.0
+    self.create_service(Trigger, "zero_heading", self.on_zero_heading)
     self.create_subscription(Image, "depth", self.on_depth, qos_profile_sensor_data)
     self.create_subscription(Imu, "imu", self.on_imu, qos_profile_sensor_data)
     self.cmd = self.create_publisher(Twist, "cmd_vel", 10)
@@ -97,10 +107,18 @@ class VineyardNode(Node):
 
   def on_imu(self, msg: Imu) -> None:
     q = msg.orientation
-    # the policy's yaw input is the IMU yaw plus its training offset, wrapped to [-pi, pi)
-    offset = math.radians(float(self.policy.meta.get("yaw_offset_deg", 0.0)))
-    yaw = quaternion_yaw(q.x, q.y, q.z, q.w) + offset
-    self.yaw, self.yaw_time = (yaw + math.pi) % (2 * math.pi) - math.pi, self.now()
+    self.imu_yaw = quaternion_yaw(q.x, q.y, q.z, q.w)
+    if self.yaw_ref is None:  # the first reading: the robot stands at the row entrance
+      self.yaw_ref = self.imu_yaw
+    self.yaw, self.yaw_time = self.policy.yaw_input(self.imu_yaw, self.yaw_ref), self.now()
+
+  def on_zero_heading(self, request, response):
+    """The robot faces down the next row from its entrance: measure yaw from here."""
+    self.yaw_ref = self.imu_yaw
+    self.v_prev = self.w_prev = 0.0
+    response.success = self.imu_yaw is not None
+    response.message = "heading zeroed" if response.success else "no IMU reading yet"
+    return response
 
   def on_timer(self) -> None:
     now, twist = self.now(), Twist()

@@ -116,11 +116,24 @@ def _json_default(o):
   raise TypeError(type(o))
 
 
+def cost_analysis(compiled) -> dict:
+  """XLA's own count of a compiled program's work: {"flops", "bytes_accessed"} per call
+  (None where the backend gives none). It does not depend on the machine's load."""
+  cost = compiled.cost_analysis()
+  if isinstance(cost, (list, tuple)):  # older jax: one dict per device program
+    cost = cost[0] if cost else {}
+  cost = cost or {}
+  get = lambda k: float(cost[k]) if k in cost else None
+  return {"flops": get("flops"), "bytes_accessed": get("bytes accessed")}
+
+
 def time_call(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3) -> dict:
-  """Compile time and steady-state seconds per call (median) of a jitted `fn(*args)`."""
+  """Compile time, steady-state seconds per call (median) and XLA's cost analysis (flops,
+  bytes accessed per call) of a jitted `fn(*args)`."""
   t = time.perf_counter()
   fn = fn.lower(*args).compile()
   compile_s = time.perf_counter() - t
+  cost = cost_analysis(fn)
   jax.block_until_ready(fn(*args))  # warm-up
   times, cpu, start = [], [], time.perf_counter()
   while len(times) < min_reps or time.perf_counter() - start < min_time:
@@ -129,7 +142,11 @@ def time_call(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3) -> 
     times.append(time.perf_counter() - t)
     cpu.append(time.process_time() - c)
   return dict(compile_s=compile_s, call_s=float(np.median(times)),
-              best_s=float(np.min(times)), cpu_s=float(np.median(cpu)), reps=len(times))
+              best_s=float(np.min(times)), cpu_s=float(np.median(cpu)), reps=len(times), **cost)
+
+
+def _per(cost: float | None, count: int) -> float | None:
+  return None if cost is None else cost / count
 
 
 # ------------------------------------------------------------------ depth
@@ -163,10 +180,49 @@ def random_poses(model: mujoco.MjModel, world, n: int, seed: int = 0,
   return out
 
 
+# argparse types: a bad value is a usage error (exit status 2, one line), not a traceback
+# halfway through a benchmark. Lists stay text: the benchmarks split them.
+
+def _positive_int(text: str) -> int:
+  try:
+    value = int(text)
+  except ValueError:
+    value = 0
+  if value < 1:
+    raise argparse.ArgumentTypeError(f"{text!r}: expected a positive integer")
+  return value
+
+
+def _int_list(text: str) -> str:
+  """Comma-separated positive integers ("1,16,64")."""
+  for item in text.split(","):
+    _positive_int(item)
+  return text
+
+
+def _size(text: str) -> str:
+  """HxW of positive integers ("112x112")."""
+  parts = text.lower().split("x")
+  if len(parts) != 2:
+    raise argparse.ArgumentTypeError(f"{text!r}: expected HxW, e.g. 112x112")
+  for part in parts:
+    _positive_int(part)
+  return text
+
+
+def _size_list(text: str) -> str:
+  """Comma-separated HxW sizes ("112x112,64x64")."""
+  for item in text.split(","):
+    _size(item)
+  return text
+
+
 def _depth_args(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--batches", default=None, help="comma-separated batch sizes "
-                 "(default 1,16,64,256; with 1024,4096 on an accelerator)")
-  p.add_argument("--sizes", default="112x112,64x64", help="comma-separated HxW")
+  p.add_argument("--batches", default=None, type=_int_list,
+                 help="comma-separated batch sizes (default 1,16,64,256; with 1024,4096 on "
+                      "an accelerator)")
+  p.add_argument("--sizes", default="112x112,64x64", type=_size_list,
+                 help="comma-separated HxW")
   p.add_argument("--baseline-batch", type=int, default=4,
                  help="batch of the naive mjx.ray baseline (0: skip it)")
   p.add_argument("--chunk", type=int, default=None,
@@ -272,9 +328,11 @@ def _sizes(args) -> list[int]:
 
 
 def _env_args(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--sizes", default=None, help="comma-separated env counts (default "
-                 "1,16,64,256, plus 1024,4096,16384 on an accelerator)")
-  p.add_argument("--steps", type=int, default=10, help="control steps per timed call")
+  p.add_argument("--sizes", default=None, type=_int_list,
+                 help="comma-separated env counts (default 1,16,64,256, plus "
+                      "1024,4096,16384 on an accelerator)")
+  p.add_argument("--steps", type=_positive_int, default=10,
+                 help="control steps per timed call")
   p.add_argument("--no-baseline", dest="baseline", action="store_false",
                  help="skip the Python loop over mujoco.mj_step (physics) baseline")
 
@@ -350,15 +408,18 @@ def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
     t = time_call(jax.jit(run), state, action)
     rows.append(dict(envs=n, image=f"{cfg.camera.height}x{cfg.camera.width}",
                      env_steps_per_s=n * args.steps / t["call_s"], compile_s=t["compile_s"],
-                     cpu_ms_per_env_step=1e3 * t["cpu_s"] / (n * args.steps)))
+                     cpu_ms_per_env_step=1e3 * t["cpu_s"] / (n * args.steps),
+                     flops_per_env_step=_per(t["flops"], n * args.steps),
+                     bytes_per_env_step=_per(t["bytes_accessed"], n * args.steps)))
   return rows
 
 
 # ------------------------------------------------------------------ learner and trainer
 
 def _update_args(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--batch-sizes", default="128,512", help="comma-separated SAC batch sizes")
-  p.add_argument("--grad-steps", type=int, default=None,
+  p.add_argument("--batch-sizes", default="128,512", type=_int_list,
+                 help="comma-separated SAC batch sizes")
+  p.add_argument("--grad-steps", type=_positive_int, default=None,
                  help="gradient steps per timed call (default sac.grad_steps_per_iter)")
 
 
@@ -382,14 +443,17 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
     t = time_call(jax.jit(sac.update_many), learner, buffer, jax.random.PRNGKey(1))
     rows.append(dict(batch=b, image=f"{h}x{w}", grad_steps_per_call=g,
                      grad_steps_per_s=g / t["call_s"],
-                     samples_per_s=g * b / t["call_s"], compile_s=t["compile_s"]))
+                     samples_per_s=g * b / t["call_s"], compile_s=t["compile_s"],
+                     flops_per_grad_step=_per(t["flops"], g),
+                     bytes_per_grad_step=_per(t["bytes_accessed"], g)))
   return rows
 
 
 def _train_args(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--sizes", default=None, help="comma-separated env counts (default "
-                 "256,1024,4096,16384 on an accelerator, 16,64 on a CPU)")
-  p.add_argument("--iters", type=int, default=None,
+  p.add_argument("--sizes", default=None, type=_int_list,
+                 help="comma-separated env counts (default 256,1024,4096,16384 on an "
+                      "accelerator, 16,64 on a CPU)")
+  p.add_argument("--iters", type=_positive_int, default=None,
                  help="iterations per timed chunk (default train.iters_per_chunk)")
   p.set_defaults(config=str(EXPERIMENTS / "fast.yaml"))
 
@@ -433,10 +497,11 @@ def bench_train(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
 # ------------------------------------------------------------------ brax's SAC
 
 def _brax_args(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--steps", type=int, default=20_000, help="env steps per learner")
-  p.add_argument("--evals", type=int, default=10, help="evaluations along the way")
-  p.add_argument("--eval-envs", type=int, default=64, help="episodes per evaluation")
-  p.add_argument("--pool", default="8x8", help="depth average-pooled to HxW cells")
+  p.add_argument("--steps", type=_positive_int, default=20_000, help="env steps per learner")
+  p.add_argument("--evals", type=_positive_int, default=10, help="evaluations along the way")
+  p.add_argument("--eval-envs", type=_positive_int, default=64, help="episodes per evaluation")
+  p.add_argument("--pool", default="8x8", type=_size,
+                 help="depth average-pooled to HxW cells")
   p.add_argument("--target", type=float, default=0.5,
                  help="success rate whose env steps and wall-clock are compared")
   p.set_defaults(config=str(EXPERIMENTS / "compare.yaml"))
@@ -548,8 +613,9 @@ def brax_summary(rows: list[dict], target: float) -> dict:
 # ------------------------------------------------------------------ deploy
 
 def _deploy_args(p: argparse.ArgumentParser) -> None:
-  p.add_argument("--calls", type=int, default=1000, help="timed single-image calls per row")
-  p.add_argument("--threads", default="1,2",
+  p.add_argument("--calls", type=_positive_int, default=1000,
+                 help="timed single-image calls per row")
+  p.add_argument("--threads", default="1,2", type=_int_list,
                  help="comma-separated BLAS (numpy) / intra-op (onnxruntime) thread counts")
   p.add_argument("--seed", type=int, default=0, help="seed of the random actor weights")
 

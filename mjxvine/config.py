@@ -12,6 +12,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import sys
 import typing
 from pathlib import Path
 from typing import Any, Sequence
@@ -95,9 +96,21 @@ class EnvConfig:
   pose_reset_every: int = _f(10, 1, 100000, doc="episodes between new start poses")
   start_yaw_jitter_deg: float = _f(10.0, 0.0, 90.0)
   start_lateral_jitter_m: float = _f(0.1, 0.0, 1.0)
-  yaw_offset_deg: float = _f(0.0, -180.0, 180.0, doc="added to the world yaw of the state "
-                             "input (an IMU's yaw reference is arbitrary; 90 keeps the rows' "
-                             "two directions away from the +-pi wrap)")
+  yaw_reference: str = _f("start", choices=("start", "world"),
+                          doc="the state's yaw: relative to the heading at the episode start "
+                          "(a robot zeroing its IMU at the row entrance; this project's "
+                          "default) or the world yaw (the paper's input)")
+  yaw_reference_jitter_deg: float = _f(20.0, 0.0, 180.0,
+                                       doc="yaw_reference=start: a random offset in +- this "
+                                       "added to the reference at every training episode "
+                                       "start, so that the relative yaw is not the heading "
+                                       "error of a straight row (0 in evaluation)")
+  yaw_offset_deg: float = _f(0.0, -180.0, 180.0, doc="yaw_reference=world: added to the world "
+                             "yaw of the state input (90 keeps the rows' two directions "
+                             "away from the +-pi wrap)")
+  heading_reward: str = _f("paper", choices=("paper", "speed_weighted"),
+                           doc="r_h as in the paper, or scaled by the forward speed / v_max "
+                           "(no heading reward for standing still facing the EoR)")
   start_directions: str = _f("both", choices=("both", "forward", "reverse"),
                              doc="travel directions of random starts (forward: +x, world "
                              "yaw near 0; reverse: yaw near +-pi, where the yaw input wraps)")
@@ -118,13 +131,22 @@ class SACConfig:
                                doc="stored depth: uint8 (9.8 mm steps) fits 1e6 x 112^2 in 13 GB")
   warmup_steps: int = _f(10_000, 0, 1 << 30, doc="uniformly random env steps before learning")
   eps_start: float = _f(1.0, 0.0, 1.0)
-  eps_decay: float = _f(0.992, 0.0, 1.0, doc="epsilon multiplier per finished episode")
+  eps_decay: float = _f(0.992, 0.0, 1.0, doc="epsilon multiplier per episode of the budget")
+  eps_budget_episodes: float = _f(1500.0, 1.0, 1e9, doc="the budget train.total_env_steps "
+                                  "counts as this many episodes for epsilon's decay, over all "
+                                  "envs together: eps = max(eps_min, eps_start * eps_decay ** "
+                                  "(eps_budget_episodes * env_steps / total_env_steps)); the "
+                                  "paper's 1500 episodes reach the floor at 25 % of the budget")
   eps_min: float = _f(0.05, 0.0, 1.0)
   hidden: int = _f(256, 1, 8192)
   conv_features: int = _f(32, 1, 1024)
   log_std_min: float = _f(-20.0, -100.0, 0.0)
   log_std_max: float = _f(2.0, -10.0, 10.0)
   grad_steps_per_iter: int = _f(1, 1, 1 << 16, doc="gradient steps per training iteration")
+  compute_dtype: str = _f("float32", choices=("float32", "bfloat16"),
+                          doc="dtype the convs and hidden layers compute in (bfloat16: "
+                          "mixed precision for accelerators; parameters, heads, losses and "
+                          "optimiser states stay float32)")
   reward_scale: float = _f(1.0, 1e-6, 1e6, doc="rewards are multiplied by this before the "
                            "replay (1: the paper; returns are logged unscaled)")
 
@@ -146,6 +168,11 @@ class TrainConfig:
                     "(0: all; see mjxvine.parallel)")
   max_minutes: float = _f(0.0, 0.0, 1e6, doc="wall-clock budget: stop (checkpoint, evaluate) "
                           "after the chunk that passes it (0: none)")
+  eval_every_chunks: int = _f(0, 0, 1 << 20, doc="deterministic evaluation from fresh starts "
+                              "of the training pool, forward and reverse apart, every this "
+                              "many chunks and at the end; keeps checkpoints/best (0: only at "
+                              "the end)")
+  eval_starts: int = _f(32, 1, 4096, doc="fresh starts per direction of that evaluation")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,6 +222,11 @@ def _coerce(key: str, value: Any, tp: Any, meta: dict) -> Any:
       raise ConfigError(f"{key} = {value!r}: expected an integer")
     value = int(value)
   elif tp is float:
+    if isinstance(value, str):  # YAML 1.1 reads "3e-4" (no dot) as a string
+      try:
+        value = float(value)
+      except ValueError:
+        pass
     if isinstance(value, bool) or not isinstance(value, (int, float)):
       raise ConfigError(f"{key} = {value!r}: expected a number")
     value = float(value)
@@ -325,11 +357,13 @@ def add_config_args(parser: argparse.ArgumentParser, default: str | None = None)
 
 
 def config_from_args(args: argparse.Namespace, extra: Sequence[str] = ()) -> Config:
-  """Loads the config named by `add_config_args`, exiting with one line on error."""
+  """Loads the config named by `add_config_args`; a bad config is a usage error: one line
+  on stderr and exit status 2 (argparse's)."""
   try:
     return load_config(args.config, [*extra, *args.overrides])
   except ConfigError as e:
-    raise SystemExit(f"config error: {e}") from None
+    print(f"config error: {e}", file=sys.stderr)
+    raise SystemExit(2) from None
 
 
 def replace(cfg: Config, **sections: dict) -> Config:

@@ -19,7 +19,9 @@ Calls are thread-safe (buffers are per thread).
 from __future__ import annotations
 
 import json
+import math
 import threading
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +32,8 @@ META_KEY = "__meta__"
 
 
 class PolicyError(ValueError):
-  """Base class of the errors raised by `NumpyPolicy`."""
+  """A policy cannot be loaded or does not fit its use: the base class of the errors of
+  `NumpyPolicy`, also raised by `mjxvine.evaluate` (as `evaluate.PolicyError`)."""
 
 
 class PolicyFormatError(PolicyError):
@@ -89,17 +92,27 @@ def read_policy_file(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
   path = Path(path)
   if not path.is_file():
     raise PolicyFormatError(f"{path}: no such policy file")
+  invalid = f"{path}: not a valid policy file"
+  # numpy reads a file that is not a zip archive as a pickle, and its error then suggests
+  # allow_pickle=True: check the container first.
+  if not zipfile.is_zipfile(path):
+    raise PolicyFormatError(f"{invalid} (not an .npz archive)")
   try:
     with np.load(path, allow_pickle=False) as data:
       arrays = {k: data[k] for k in data.files}
-  except Exception as e:  # not a zip / not npz / corrupted
-    raise PolicyFormatError(f"{path}: not a readable .npz policy file ({e})") from None
+  except Exception as e:  # noqa: BLE001 - a truncated or corrupted archive, object arrays
+    text = str(e).splitlines()[0][:160] if str(e) else type(e).__name__
+    if "allow_pickle" in text:  # numpy's hint to load pickles: never right for a policy
+      text = "holds pickled object arrays"
+    raise PolicyFormatError(f"{invalid} ({text})") from None
   if META_KEY not in arrays:
-    raise PolicyFormatError(f"{path}: no {META_KEY} entry; not an mjxvine policy file")
+    raise PolicyFormatError(f"{invalid} (no {META_KEY} entry: not an mjxvine policy file)")
   try:
     meta = json.loads(str(arrays.pop(META_KEY)))
+    if not isinstance(meta, dict):
+      raise ValueError(f"a JSON {type(meta).__name__}, not an object")
   except ValueError as e:
-    raise PolicyFormatError(f"{path}: unreadable metadata ({e})") from None
+    raise PolicyFormatError(f"{invalid} (unreadable metadata: {e})") from None
   version = meta.get("format_version")
   if version != FORMAT_VERSION:
     raise PolicyFormatError(f"{path}: policy format version {version!r}; this mjxvine reads "
@@ -263,6 +276,20 @@ class NumpyPolicy:
     mean = h @ self._mean[0] + self._mean[1]
     act = self.low + 0.5 * (np.tanh(mean) + 1.0) * (self.high - self.low)
     return act if batched else act[0]
+
+  def yaw_input(self, imu_yaw: float, start_yaw: float | None = None) -> float:
+    """The state's yaw (rad, in [-pi, pi)) from the IMU yaw (rad) as the policy was
+    trained: relative to `start_yaw`, the IMU yaw at the row entrance with the robot facing
+    down the row (metadata `yaw_reference` "start"), or the IMU yaw plus `yaw_offset_deg`
+    ("world", the paper's input; also files exported before the key existed)."""
+    if self.meta.get("yaw_reference", "world") == "start":
+      if start_yaw is None:
+        raise PolicyInputError("this policy reads the yaw relative to the row entrance: "
+                               "give start_yaw, the IMU yaw there")
+      yaw = imu_yaw - start_yaw
+    else:
+      yaw = imu_yaw + math.radians(float(self.meta.get("yaw_offset_deg", 0.0)))
+    return (yaw + math.pi) % (2 * math.pi) - math.pi
 
   def __call__(self, depth, state, preprocess: bool | None = None):
     """(v, w): floats for one input, arrays (B,) for a batch (one per action dim)."""

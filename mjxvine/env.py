@@ -5,7 +5,9 @@ a leading axis, `in_axes`); every env carries the index of its world in its stat
 reads that world's fields, so N envs under `jax.vmap` drive in N different vineyards.
 
 Observation: {"depth": (H, W, 1) float32 noisy z-depth in metres, "state": (3,)
-[v_prev m/s, w_prev rad/s, yaw rad]}. Action: [v, w] in physical units, v in [0, v_max]
+[v_prev m/s, w_prev rad/s, yaw rad]}. The yaw is relative to a reference (`env.yaw_reference`):
+the heading at the episode start plus a random training offset ("start", as a robot zeroes
+its IMU heading at the row entrance), or the world yaw ("world", the paper's input). Action: [v, w] in physical units, v in [0, v_max]
 m/s, w in [-w_max, w_max] rad/s. Pose, lane and End of Row (EoR) live in `info` only.
 
 `step` auto-resets a finished env: it starts again from its start pose, and every
@@ -127,21 +129,23 @@ class VineyardEnv(Env):
     """The mjx.Model of pool world `world` (a traced index is fine)."""
     return take_world(self.model, self.model_axes, world)
 
-  def reset(self, rng: jax.Array) -> State:
-    """A fresh env at a random start pose of a random pool world."""
+  def reset(self, rng: jax.Array, direction: float | None = None) -> State:
+    """A fresh env at a random start pose of a random pool world; `direction` (+1
+    forward, -1 reverse) forces the travel direction instead of `env.start_directions`."""
     k_pose, k_obs, k_next = jax.random.split(rng, 3)
-    pose = self.sample_pose(k_pose)
+    pose = self.sample_pose(k_pose, direction)
     return self._start(pose, k_obs, k_next, episodes=jp.int32(0))
 
   def reset_to(self, rng: jax.Array, world, lane, direction, along=0.0, lateral=0.0,
                yaw=0.0) -> State:
     """An env at a given start: lane index (0-based), direction (+1 forward, -1 reverse),
     `along` (m from the lane's start in the travel direction), lateral offset (m) and yaw
-    offset (rad). Used by the evaluation protocol."""
+    offset (rad). Used by the evaluation protocol: the yaw reference is the start heading,
+    without the training jitter."""
     k_obs, k_next = jax.random.split(rng)
     pose = self._pose(jp.int32(world), jp.int32(lane), jp.float32(direction),
                       jp.float32(along), jp.float32(lateral), jp.float32(yaw))
-    return self._start(pose, k_obs, k_next, episodes=jp.int32(0))
+    return self._start(pose, k_obs, k_next, episodes=jp.int32(0), ref_jitter=False)
 
   def step(self, state: State, action: jax.Array) -> State:
     """One 0.1 s control step with auto-reset (see module docstring)."""
@@ -151,14 +155,18 @@ class VineyardEnv(Env):
     return state
 
   # ------------------------------------------------------------------ start poses
-  def sample_pose(self, key: jax.Array) -> dict:
-    """A random start: pool world, lane, direction, point along the lane, jitter."""
+  def sample_pose(self, key: jax.Array, direction: float | None = None) -> dict:
+    """A random start: pool world, lane, direction (`env.start_directions`, unless given:
+    +1 forward, -1 reverse), point along the lane, jitter."""
     kw, kl, kd, ka, kx, ky = jax.random.split(key, 6)
     env = self.cfg.env
     world = jax.random.randint(kw, (), 0, len(self.worlds))
     lane = jax.random.randint(kl, (), 0, self.lanes.count[world])
-    p_forward = {"both": 0.5, "forward": 1.0, "reverse": 0.0}[env.start_directions]
-    direction = jp.where(jax.random.bernoulli(kd, p_forward), jp.float32(1), jp.float32(-1))
+    if direction is None:
+      p_forward = {"both": 0.5, "forward": 1.0, "reverse": 0.0}[env.start_directions]
+      direction = jp.where(jax.random.bernoulli(kd, p_forward), jp.float32(1), jp.float32(-1))
+    else:
+      direction = jp.float32(direction)
     length = self.worlds[0].length_m
     along = jax.random.uniform(ka, (), minval=0.0, maxval=0.6 * length)
     lateral = jax.random.uniform(kx, (), minval=-1.0, maxval=1.0) * env.start_lateral_jitter_m
@@ -203,12 +211,24 @@ class VineyardEnv(Env):
                             ctrl=jp.zeros_like(self._data0.ctrl))
     return m, mjx.forward(m, d)
 
-  def _start(self, pose: dict, k_obs, k_next, episodes) -> State:
+  def _yaw_reference(self, pose: dict, key: jax.Array, jitter: bool) -> jax.Array:
+    """World yaw (rad) that the state's yaw is measured from, for an episode from `pose`."""
+    env = self.cfg.env
+    if env.yaw_reference == "world":
+      return jp.float32(-np.deg2rad(env.yaw_offset_deg))
+    if not jitter:
+      return pose["yaw"]
+    half = np.deg2rad(env.yaw_reference_jitter_deg)
+    return pose["yaw"] + jax.random.uniform(key, (), minval=-half, maxval=half)
+
+  def _start(self, pose: dict, k_obs, k_next, episodes, ref_jitter: bool = True) -> State:
     m, d = self._pose_data(pose)
     prev_action = jp.zeros(2, jp.float32)
-    obs = self._observe(m, d, prev_action, k_obs)
+    k_obs, k_ref = jax.random.split(k_obs)
+    yaw_ref = self._yaw_reference(pose, k_ref, ref_jitter)
+    obs = self._observe(m, d, prev_action, k_obs, yaw_ref)
     info = dict(
-        pose=pose, rng=k_next, episodes=episodes, episode_steps=jp.int32(0),
+        pose=pose, rng=k_next, episodes=episodes, episode_steps=jp.int32(0), yaw_ref=yaw_ref,
         prev_action=prev_action, dist=jp.linalg.norm(d.qpos[:2] - pose["eor"]),
         truncation=jp.float32(0), outcome=jp.int32(RUNNING), episode_return=jp.float32(0),
         last_return=jp.float32(0), last_outcome=jp.int32(RUNNING), last_length=jp.int32(0))
@@ -217,11 +237,10 @@ class VineyardEnv(Env):
                  metrics=metrics, info=info)
 
   # ------------------------------------------------------------------ dynamics
-  def _observe(self, m, d, prev_action, key, noise_factor=None) -> dict:
+  def _observe(self, m, d, prev_action, key, yaw_ref) -> dict:
     image = depth_cam.render_depth(self.camera, m, d)
-    k = self.noise_factor if noise_factor is None else noise_factor
-    noisy = depth_cam.add_noise(image, key, self.camera, k)
-    yaw = _wrap(_yaw(d.qpos[3:7]) + jp.deg2rad(self.cfg.env.yaw_offset_deg))
+    noisy = depth_cam.add_noise(image, key, self.camera, self.noise_factor)
+    yaw = _wrap(_yaw(d.qpos[3:7]) - yaw_ref)
     return {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
 
   def plant_clearance(self, m: mjx.Model, xy: jax.Array, yaw: jax.Array) -> jax.Array:
@@ -277,6 +296,9 @@ class VineyardEnv(Env):
          outcome == REVERSED], [env.success_reward, env.collision_reward, env.reverse_reward],
         0.0)
     r_heading = 1.0 - 2.0 * jp.sqrt(jp.abs(phi / jp.pi))
+    if env.heading_reward == "speed_weighted":
+      forward_speed = d.qvel[:2] @ jp.array([jp.cos(yaw), jp.sin(yaw)])
+      r_heading = r_heading * jp.clip(forward_speed / env.v_max, 0.0, 1.0)
     r_progress = info["dist"] - dist
     reward = env.heading_weight * r_heading + env.progress_weight * r_progress + sparse
     reward = jp.where(exploded, 0.0, reward)
@@ -284,7 +306,7 @@ class VineyardEnv(Env):
     truncation = (outcome == TIMEOUT) | (outcome == PHYSICS)
 
     k_obs, k_next = jax.random.split(info["rng"])
-    obs = self._observe(m, d, action, k_obs)
+    obs = self._observe(m, d, action, k_obs, info["yaw_ref"])
     ret = info["episode_return"] + reward
     new_info = dict(info, rng=k_next, episode_steps=steps, prev_action=action, dist=dist,
                     truncation=truncation.astype(jp.float32), outcome=outcome,
@@ -318,22 +340,19 @@ class VineyardEnv(Env):
     """`num_envs` envs, reset with independent keys: a State with a leading env axis."""
     return jax.vmap(self.reset)(jax.random.split(rng, num_envs))
 
-  def step_batch(self, state: State, action: jax.Array) -> tuple[State, dict]:
-    """Steps a batch of envs (leading axis) with auto-reset, also returning the
-    observation each env had before its reset (`final_obs`), for bootstrapping through
-    truncations. The reset observation is rendered only when some env finished."""
+  def step_batch(self, state: State, action: jax.Array,
+                 auto_reset: bool | None = None) -> tuple[State, dict]:
+    """Steps a batch of envs (leading axis) with auto-reset (unless `auto_reset`, default
+    the env's, is False), also returning the observation each env had before its reset
+    (`final_obs`), for bootstrapping through truncations. The reset observation is
+    rendered only when some env finished."""
     advanced, done = jax.vmap(self._advance)(state, action)
     final_obs = advanced.obs
-    if not self.auto_reset:
+    if not (self.auto_reset if auto_reset is None else auto_reset):
       return advanced, final_obs
     new = jax.lax.cond(jp.any(done), jax.vmap(self._auto_reset), lambda s, _: s, advanced,
                        done)
     return new, final_obs
-
-
-def make_env(cfg: Config, **kwargs) -> VineyardEnv:
-  """The training env of a config (its pool of train worlds)."""
-  return VineyardEnv(cfg, **kwargs)
 
 
 # ---------------------------------------------------------------------- reference driver

@@ -8,6 +8,13 @@
 policy's deterministic action. Runs differ by the depth noise. MAE and RMSE are the
 distances of the trajectory to the lane's ground-truth line (midline of its two plant
 rows fitted with a fifth-order polynomial), over the part of the trajectory inside the row.
+
+A run that ends early (collision, leaving the lane, ...) has a short trajectory, and its
+MAE/RMSE are not comparable to the paper's: each row reports the part of the lane covered
+(m and fraction of the centreline's arc length) and `metrics_status`: "full" when every
+run reached the end of the row (EoR), "partial" when some did, "n/a" when none did (then
+MAE/RMSE are null in results.json and "n/a" in results.md; `mae_m_raw`/`rmse_m_raw` keep
+the numbers). --which picks the checkpoint of a run dir: best (default) or last.
 """
 
 from __future__ import annotations
@@ -24,7 +31,9 @@ import jax.numpy as jp
 import numpy as np
 
 from mjxvine.config import Config, add_config_args, config_from_args, replace
-from mjxvine.env import OUTCOMES, RUNNING, SUCCESS, VineyardEnv, pure_pursuit
+# One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
+from mjxvine.deploy import PolicyError
+from mjxvine.env import OUTCOMES, SUCCESS, VineyardEnv, pure_pursuit
 from mjxvine.worlds import Vineyard, make_world
 
 # The paper's Table (SPEC section 7): lane-direction -> (MAE, RMSE, v, v_std, w, w_std, succ)
@@ -44,10 +53,6 @@ CHUNK_STEPS = 50
 Policy = Callable  # policy(state, key) -> action (2,), one env (vmapped by the rollout)
 
 
-class PolicyError(ValueError):
-  """A policy cannot be loaded or does not fit the evaluation setting."""
-
-
 def random_policy(env: VineyardEnv) -> Policy:
   def policy(state, key):
     del state
@@ -55,26 +60,75 @@ def random_policy(env: VineyardEnv) -> Policy:
   return policy
 
 
-def load_policy(spec: str, env: VineyardEnv) -> tuple[Policy, str]:
-  """`oracle`, `random`, a run directory / checkpoint, or an exported `.npz` actor."""
+def load_policy(spec: str, env: VineyardEnv, which: str = "best") -> tuple[Policy, str]:
+  """`oracle`, `random`, a run directory / checkpoint, or an exported `.npz` actor.
+  which: the checkpoint of a run directory, "best" or "last" (`export.checkpoint_item`)."""
   if spec == "oracle":
     return pure_pursuit(env), "oracle (pure pursuit, privileged pose)"
   if spec == "random":
     return random_policy(env), "random"
+  path = check_policy_file(spec, which)
+  from mjxvine import policies
+  return policies.load_actor_policy(path, env, which), str(path)
+
+
+def check_policy_file(spec: str, which: str = "best") -> Path:
+  """The path of a policy given as a run dir or .npz, checked before anything is built:
+  it exists, an .npz reads as a policy file, a run dir holds a checkpoint (`which`)."""
   path = Path(spec)
   if not path.exists():
-    raise PolicyError(f"policy not found: {spec} (give oracle, random, a run dir or a .npz)")
-  from mjxvine import policies
-  return policies.load_actor_policy(path, env), str(path)
+    what = "policy not found" if path.suffix == ".npz" else "no such run directory"
+    raise PolicyError(f"{what}: {spec} (give oracle, random, a run dir or a .npz)")
+  if path.suffix == ".npz":
+    from mjxvine.deploy import read_policy_file
+    read_policy_file(path)
+  else:
+    from mjxvine.export import checkpoint_item
+    try:
+      checkpoint_item(path, which)
+    except FileNotFoundError as e:
+      raise PolicyError(str(e)) from None
+  return path
+
+
+def _closest(points: np.ndarray, line: np.ndarray):
+  """For points (n, 2) and the polyline `line` (k, 2): the distances (n,) (m) to the line,
+  the index (n,) of the closest segment and the fraction (n,) along it."""
+  a, b = line[:-1], line[1:]
+  ab = b - a
+  t = np.clip(np.einsum("nkd,kd->nk", points[:, None] - a, ab) / np.sum(ab * ab, -1), 0, 1)
+  dist = np.linalg.norm(points[:, None] - (a + t[..., None] * ab), axis=-1)
+  seg = np.argmin(dist, axis=1)
+  rows = np.arange(len(points))
+  return dist[rows, seg], seg, t[rows, seg]
 
 
 def distance_to_line(points: np.ndarray, line: np.ndarray) -> np.ndarray:
   """Distance (m) of each point (n, 2) to the polyline `line` (k, 2)."""
-  a, b = line[:-1], line[1:]
-  ab = b - a
-  t = np.clip(np.einsum("nkd,kd->nk", points[:, None] - a, ab) / np.sum(ab * ab, -1), 0, 1)
-  closest = a + t[..., None] * ab
-  return np.min(np.linalg.norm(points[:, None] - closest, axis=-1), axis=1)
+  return _closest(points, line)[0]
+
+
+def arc_length(line: np.ndarray) -> float:
+  """Length (m) of the polyline `line` (k, 2)."""
+  return float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum())
+
+
+def along_line(points: np.ndarray, line: np.ndarray) -> np.ndarray:
+  """Arc-length coordinate (m, from line[0]) of the closest point of `line` (k, 2) to each
+  point (n, 2): (n,), in [0, arc_length(line)]."""
+  _, seg, t = _closest(points, line)
+  lengths = np.linalg.norm(np.diff(line, axis=0), axis=1)
+  return np.concatenate([[0.0], np.cumsum(lengths)])[seg] + t * lengths[seg]
+
+
+def lane_progress(xy: np.ndarray, line: np.ndarray, direction: str) -> float:
+  """How far (m) a trajectory xy (n, 2) got along the lane centreline `line` (k, 2), from
+  the lane's start in its travel direction ("F": from line[0], "R": from line[-1]): the
+  along-lane coordinate of its furthest point, in [0, arc_length(line)]."""
+  if len(xy) == 0:
+    return 0.0
+  s = along_line(xy, line)
+  return float(s.max() if direction == "F" else arc_length(line) - s.min())
 
 
 def trajectory_errors(xy: np.ndarray, line: np.ndarray) -> np.ndarray:
@@ -123,37 +177,28 @@ def rollout(env: VineyardEnv, policy: Policy, lanes, directions, key, max_steps:
   return xy, act, alive, outcome, alive.sum(0)
 
 
-def start_outcomes(env: VineyardEnv, policy: Callable, params, key: jax.Array,
-                   episodes: int) -> jax.Array:
-  """Outcome codes (episodes,) of one episode each from the env's own random starts (its
-  train-world pool, `env.reset`), run batched under one `lax.scan` of env.max_steps.
-  `policy(params, state, key) -> action` (one env) takes its parameters as an argument,
-  so that one compiled rollout serves every policy of that shape (jit it with
-  `env`/`policy`/`episodes` static). The quick check of a training run."""
-  k_reset, k_run = jax.random.split(key)
-  state = jax.vmap(env.reset)(jax.random.split(k_reset, episodes))
-
-  def body(carry, k):
-    state, outcome = carry
-    action = jax.vmap(policy, (None, 0, 0))(params, state, jax.random.split(k, episodes))
-    state, _ = env.step_batch(state, action)
-    first = (outcome == RUNNING) & (state.done > 0)
-    return (state, jp.where(first, state.info["last_outcome"], outcome)), None
-
-  (_, outcome), _ = jax.lax.scan(body, (state, jp.zeros(episodes, jp.int32)),
-                                 jax.random.split(k_run, env.cfg.env.max_steps))
-  return outcome
+def metrics_status(successes: int, runs: int) -> str:
+  """"full" when every run reached its EoR, "partial" when some did, "n/a" when none did."""
+  return "full" if runs and successes == runs else "partial" if successes else "n/a"
 
 
-def _summary(errs, acts, outcomes, steps, dt) -> dict:
+def _summary(errs, acts, outcomes, steps, dt, covered_m, covered_frac) -> dict:
+  """Metrics of a group of runs: errs/acts per run (n_i,)/(n_i, 2), outcome codes, steps
+  per run, the control step dt (s), lane covered per run (m, fraction of the lane)."""
   errs = np.concatenate(errs) if errs else np.zeros(0)
   acts = np.concatenate(acts) if acts else np.zeros((0, 2))
   succ = [o == SUCCESS for o in outcomes]
   times = [s * dt for s, ok in zip(steps, succ) if ok]
+  status = metrics_status(int(sum(succ)), len(outcomes))
+  mae = float(np.mean(errs)) if errs.size else None
+  rmse = float(np.sqrt(np.mean(errs ** 2))) if errs.size else None
   return {
-      "success": int(sum(succ)), "runs": len(outcomes),
-      "mae_m": float(np.mean(errs)) if errs.size else None,
-      "rmse_m": float(np.sqrt(np.mean(errs ** 2))) if errs.size else None,
+      "success": int(sum(succ)), "runs": len(outcomes), "metrics_status": status,
+      # no run reached the EoR: the errors of a few metres of lane say nothing comparable
+      "mae_m": None if status == "n/a" else mae, "rmse_m": None if status == "n/a" else rmse,
+      "mae_m_raw": mae, "rmse_m_raw": rmse,
+      "lane_covered_m": float(np.mean(covered_m)),
+      "lane_covered_frac": float(np.mean(covered_frac)),
       "v_mean": float(acts[:, 0].mean()), "v_std": float(acts[:, 0].std()),
       "w_mean": float(acts[:, 1].mean()), "w_std": float(acts[:, 1].std()),
       "time_to_eor_s": float(np.mean(times)) if times else None,
@@ -162,12 +207,17 @@ def _summary(errs, acts, outcomes, steps, dt) -> dict:
 
 def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
              noise_factor: float, lanes=None, directions=("F", "R"), seed: int = 0,
-             policy: Policy | None = None) -> dict:
-  """Runs the protocol and returns the results document (see README)."""
+             policy: Policy | None = None, which: str = "best") -> dict:
+  """Runs the protocol and returns the results document (see README). which: the
+  checkpoint of a run directory given as `policy_spec`, "best" or "last"."""
+  if runs < 1:
+    raise ValueError(f"runs={runs}: need at least 1 run per lane and direction")
+  if noise_factor < 0:
+    raise ValueError(f"noise factor {noise_factor}: must be >= 0")
   env = VineyardEnv(cfg, [world], noise_factor=noise_factor, auto_reset=False)
   name = policy_spec
   if policy is None:
-    policy, name = load_policy(policy_spec, env)
+    policy, name = load_policy(policy_spec, env, which)
   lanes = list(range(1, len(world.lanes) + 1)) if lanes is None else list(lanes)
   cases = [(l, d, r) for l in lanes for d in directions for r in range(runs)]
   t0 = time.time()
@@ -175,23 +225,31 @@ def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
       env, policy, [l - 1 for l, _, _ in cases], [1.0 if d == "F" else -1.0 for _, d, _ in cases],
       jax.random.PRNGKey(seed), cfg.env.max_steps)
   wall = time.time() - t0
-  rows, all_err, all_act, trajs = [], [], [], []
+  rows, all_err, all_act, all_m, all_frac, trajs = [], [], [], [], [], []
   for (lane, direction) in [(l, d) for l in lanes for d in directions]:
     idx = [i for i, c in enumerate(cases) if c[:2] == (lane, direction)]
     line = world.lanes[lane - 1].centerline
+    length = arc_length(line)
     errs = [trajectory_errors(xy[alive[:, i], i], line) for i in idx]
     acts = [act[alive[:, i], i] for i in idx]
+    # A run that reached its EoR covered the lane, though it stops within the success
+    # radius of the line's end.
+    covered = [length if outcome[i] == SUCCESS else
+               min(lane_progress(xy[alive[:, i], i], line, direction), length) for i in idx]
     row = _summary(errs, acts, [int(outcome[i]) for i in idx], [int(steps[i]) for i in idx],
-                   cfg.env.control_dt)
+                   cfg.env.control_dt, covered, [c / length for c in covered])
     row.update(lane=lane, direction=direction, shape=world.lanes[lane - 1].shape,
-               outcomes=[OUTCOMES[int(outcome[i])] for i in idx])
+               lane_length_m=length, outcomes=[OUTCOMES[int(outcome[i])] for i in idx])
     rows.append(row)
     all_err += errs
     all_act += acts
+    all_m += covered
+    all_frac += [c / length for c in covered]
     trajs += [{"lane": lane, "direction": direction, "outcome": OUTCOMES[int(outcome[i])],
-               "xy": xy[alive[:, i], i].round(3).tolist()} for i in idx]
+               "lane_covered_m": round(c, 3), "xy": xy[alive[:, i], i].round(3).tolist()}
+              for i, c in zip(idx, covered)]
   overall = _summary(all_err, all_act, [int(o) for o in outcome], [int(s) for s in steps],
-                     cfg.env.control_dt)
+                     cfg.env.control_dt, all_m, all_frac)
   return {"policy": name, "robot": cfg.robot.name, "noise": noise_factor,
           "world": {"kind": world.kind, "seed": world.seed}, "overall": overall, "rows": rows,
           "wall_s": wall, "trajectories": trajs}
@@ -201,44 +259,87 @@ def _fmt(x, nd=3):
   return "-" if x is None else f"{x:.{nd}f}"
 
 
+def _metric(r: dict, key: str, nd: int = 3) -> str:
+  """MAE/RMSE cell of a row: "n/a" when no run reached its EoR, "(partial)" when some did."""
+  if r["metrics_status"] == "n/a":
+    return "n/a"
+  return _fmt(r[key], nd) + (" (partial)" if r["metrics_status"] == "partial" else "")
+
+
+def _covered(r: dict) -> str:
+  return f"{r['lane_covered_frac']:.0%} ({r['lane_covered_m']:.1f} m)"
+
+
 def results_markdown(doc: dict) -> str:
   """A table laid out like the paper's, with the paper's numbers beside ours."""
   lines = [f"# Evaluation: {doc['policy']} ({doc['robot']}, noise x{doc['noise']})", "",
-           "| test row | shape | MAE m (paper) | RMSE m (paper) | v m/s (paper) | w rad/s (paper) "
-           "| success (paper) |", "|---|---|---|---|---|---|---|"]
+           "| test row | shape | lane covered | MAE m (paper) | RMSE m (paper) | v m/s (paper) "
+           "| w rad/s (paper) | success (paper) |", "|---|---|---|---|---|---|---|---|"]
   for r in doc["rows"] + [dict(doc["overall"], lane="overall", direction="", shape="")]:
     key = f"{r['lane']}{r['direction']}"
     p = PAPER.get(key)
     ps = (lambda i, nd=3: f" ({p[i]:.{nd}f})") if p else (lambda i, nd=3: "")
     lines.append(
-        f"| {key} | {r['shape']} | {_fmt(r['mae_m'])}{ps(0)} | {_fmt(r['rmse_m'])}{ps(1)} | "
+        f"| {key} | {r['shape']} | {_covered(r)} | {_metric(r, 'mae_m')}{ps(0)} | "
+        f"{_metric(r, 'rmse_m')}{ps(1)} | "
         f"{r['v_mean']:.3f} +- {r['v_std']:.3f}{ps(2)} | {r['w_mean']:.3f} +- {r['w_std']:.3f}"
         f"{ps(4)} | {r['success']}/{r['runs']}" + (f" ({p[6]}/{5 if key != 'overall' else 50})"
                                                   if p else "") + " |")
-  lines += ["", f"Rollout wall-clock: {doc['wall_s']:.1f} s."]
+  lines += ["", "Lane covered: mean over the runs of the part of the lane's centreline driven "
+            "from its start (a run that reached the EoR covers all of it). MAE/RMSE: n/a when "
+            "no run of the row reached the EoR; (partial) when only some did: they then "
+            "include runs that stopped early and are not comparable to the paper's.",
+            "", f"Rollout wall-clock: {doc['wall_s']:.1f} s."]
   return "\n".join(lines) + "\n"
 
 
+# Outcome colours that stand out against the green plants and the grey centrelines.
+OUTCOME_COLOURS = {"success": "tab:blue", "collision": "tab:red", "left_lane": "tab:orange",
+                   "reversed": "tab:purple", "timeout": "0.15", "physics": "magenta"}
+
+
+def _title(doc: dict) -> str:
+  o = doc["overall"]
+  status = o["metrics_status"]
+  metrics = ("MAE/RMSE n/a (no run reached the EoR)" if status == "n/a" else
+             f"MAE {_fmt(o['mae_m'])} m, RMSE {_fmt(o['rmse_m'])} m" +
+             (" (partial: only some runs reached the EoR)" if status == "partial" else ""))
+  return (f"{doc['policy']} - {doc['robot']}, noise x{doc['noise']}: {o['success']}/{o['runs']}"
+          f" success, lane covered {o['lane_covered_frac']:.0%}\n{metrics}")
+
+
 def plot_trajectories(doc: dict, world: Vineyard, path) -> None:
-  """Top-down vineyard with every trajectory, coloured by outcome."""
+  """Top-down vineyard with every trajectory: colour by outcome, solid forward and dashed
+  reverse runs, a circle at each start and a cross where a failed run ended."""
   import matplotlib.pyplot as plt
+  from matplotlib.lines import Line2D
 
   from mjxvine.worlds.plot import draw_vineyard
-  colours = {"success": "tab:green", "collision": "tab:red", "left_lane": "tab:orange",
-             "reversed": "tab:purple", "timeout": "tab:gray", "physics": "black"}
   fig, ax = plt.subplots(figsize=(13, 6.5))
-  draw_vineyard(ax, world, terrain=False)
-  seen = set()
+  world_handles, _ = draw_vineyard(ax, world, terrain=False)
+  counts: dict[str, int] = {}
   for t in doc["trajectories"]:
     xy = np.asarray(t["xy"]).reshape(-1, 2)
-    lab = t["outcome"] if t["outcome"] not in seen else None
-    seen.add(t["outcome"])
-    ax.plot(xy[:, 0], xy[:, 1], color=colours[t["outcome"]], lw=0.9, alpha=0.8, label=lab)
-  ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-  o = doc["overall"]
-  ax.set_title(f"{doc['policy']} - {doc['robot']}, noise x{doc['noise']}: "
-               f"{o['success']}/{o['runs']} success, MAE {_fmt(o['mae_m'])} m, "
-               f"RMSE {_fmt(o['rmse_m'])} m")
+    counts[t["outcome"]] = counts.get(t["outcome"], 0) + 1
+    if not len(xy):
+      continue
+    colour = OUTCOME_COLOURS[t["outcome"]]
+    ax.plot(xy[:, 0], xy[:, 1], color=colour, lw=1.0, alpha=0.85,
+            ls="-" if t["direction"] == "F" else (0, (4, 2)))
+    ax.plot(*xy[0], "o", ms=5, mfc=colour, mec="white", mew=0.8, zorder=5)
+    if t["outcome"] != "success":
+      ax.plot(*xy[-1], "x", ms=7, mew=1.8, color=colour, zorder=5)
+  # every outcome, with its count: the same colour key in every figure
+  handles = [Line2D([], [], color=c, lw=2, label=f"{o} ({counts.get(o, 0)})")
+             for o, c in OUTCOME_COLOURS.items()]
+  handles += [Line2D([], [], color="0.3", lw=1.2, label="forward run"),
+              Line2D([], [], color="0.3", lw=1.2, ls=(0, (4, 2)), label="reverse run"),
+              Line2D([], [], ls="", marker="o", ms=6, mfc="0.3", mec="white", label="start"),
+              Line2D([], [], ls="", marker="x", ms=7, mew=1.8, color="0.3",
+                     label="end of a failed run")]
+  ax.legend(handles=handles + world_handles, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+            fontsize=8)
+  ax.set_title(_title(doc), fontsize=10)
   fig.savefig(path, dpi=110, bbox_inches="tight")
   plt.close(fig)
 
@@ -250,12 +351,12 @@ def write_results(doc: dict, world: Vineyard, out: Path) -> None:
   plot_trajectories(doc, world, out / "trajectories.png")
 
 
-def sweep_noise(cfg, policy_spec, world, out: Path, seed=0) -> dict:
+def sweep_noise(cfg, policy_spec, world, out: Path, seed=0, which="best") -> dict:
   """The robustness table: noise factors 2..10 on lanes 1F and 4F, 3 runs each."""
   table = {}
   for k in sorted(PAPER_NOISE):
     doc = evaluate(cfg, policy_spec, world, runs=3, noise_factor=float(k), lanes=(1, 4),
-                   directions=("F",), seed=seed)
+                   directions=("F",), seed=seed, which=which)
     table[k] = {f"{r['lane']}F": r for r in doc["rows"]}
   lines = ["# Noise robustness (lanes 1F straight, 4F curved; 3 runs each)", "",
            "| noise factor | " + " | ".join(str(k) for k in table) + " |",
@@ -284,12 +385,13 @@ def sweep_noise(cfg, policy_spec, world, out: Path, seed=0) -> dict:
   return table
 
 
-def sweep_robots(cfg, policy_spec, world, out: Path, seed=0) -> dict:
+def sweep_robots(cfg, policy_spec, world, out: Path, seed=0, which="best") -> dict:
   """The platform table: Jackal vs Husky on lanes 1F and 4F, 3 runs each."""
   table = {}
   for robot in ("jackal", "husky"):
     doc = evaluate(replace(cfg, robot={"name": robot}), policy_spec, world, runs=3,
-                   noise_factor=cfg.eval.noise_factor, lanes=(1, 4), directions=("F",), seed=seed)
+                   noise_factor=cfg.eval.noise_factor, lanes=(1, 4), directions=("F",), seed=seed,
+                   which=which)
     for r in doc["rows"]:
       table[(robot, f"{r['lane']}F")] = r
   lines = ["# Robots (3 runs each)", "", "| row | robot | success (paper) | T_avg s (paper) | "
@@ -298,8 +400,8 @@ def sweep_robots(cfg, policy_spec, world, out: Path, seed=0) -> dict:
   for (robot, lane), r in sorted(table.items(), key=lambda kv: (kv[0][1], kv[0][0] != "jackal")):
     p = PAPER_ROBOTS[(robot, lane)]
     lines.append(f"| {lane} | {robot} | {r['success']}/3 ({p[0]}/3) | {_fmt(r['time_to_eor_s'], 1)}"
-                 f" ({paper_t[(robot, lane)]}) | {_fmt(r['mae_m'])} ({p[1]}) | "
-                 f"{_fmt(r['rmse_m'])} ({p[2]}) |")
+                 f" ({paper_t[(robot, lane)]}) | {_metric(r, 'mae_m')} ({p[1]}) | "
+                 f"{_metric(r, 'rmse_m')} ({p[2]}) |")
   out.mkdir(parents=True, exist_ok=True)
   (out / "robots.md").write_text("\n".join(lines) + "\n")
   (out / "robots.json").write_text(json.dumps({f"{k[0]}_{k[1]}": v for k, v in table.items()}))
@@ -318,30 +420,45 @@ def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python -m mjxvine.evaluate", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--policy", required=True, help="oracle, random, a run dir or a .npz")
+  p.add_argument("--which", choices=("best", "last"), default="best",
+                 help="with a run dir as --policy: its best checkpoint (the highest step "
+                      "under RUN/checkpoints/best/; the last step when the run has none) or "
+                      "the last one (the newest step under RUN/checkpoints/). Default: best")
   p.add_argument("--robot", choices=("jackal", "husky"), default=None)
-  p.add_argument("--noise", type=float, default=None, help="depth noise factor")
-  p.add_argument("--runs", type=int, default=None, help="runs per lane and direction")
+  p.add_argument("--noise", type=float, default=None,
+                 help="depth noise factor, >= 0 (default: the config's eval.noise_factor)")
+  p.add_argument("--runs", type=int, default=None,
+                 help="runs per lane and direction, >= 1 (default: the config's eval.runs)")
   p.add_argument("--world", default=None, help="test-world seed or world .json file")
   p.add_argument("--sweep", choices=("noise", "robots"), default=None)
   p.add_argument("--seed", type=int, default=0)
   p.add_argument("--out", required=True)
   add_config_args(p)
   args = p.parse_args(argv)
+  if args.runs is not None and args.runs < 1:
+    p.error(f"--runs {args.runs}: need at least 1 run per lane and direction")
+  if args.noise is not None and not args.noise >= 0:  # also NaN
+    p.error(f"--noise {args.noise}: the noise factor must be >= 0")
   extra = [f"robot.name={args.robot}"] if args.robot else []
   cfg = config_from_args(args, extra)
   noise = cfg.eval.noise_factor if args.noise is None else args.noise
   runs = cfg.eval.runs if args.runs is None else args.runs
   try:
+    if args.policy not in ("oracle", "random"):  # fail before the worlds are built
+      check_policy_file(args.policy, args.which)
     world = make_world(args.world or str(cfg.world.test_seed), cfg.world)
     out = Path(args.out)
     if args.sweep == "noise":
-      sweep_noise(cfg, args.policy, world, out, args.seed)
+      sweep_noise(cfg, args.policy, world, out, args.seed, args.which)
       print((out / "noise.md").read_text())
     elif args.sweep == "robots":
-      sweep_robots(cfg, args.policy, world, out, args.seed)
+      sweep_robots(cfg, args.policy, world, out, args.seed, args.which)
       print((out / "robots.md").read_text())
     else:
-      doc = evaluate(cfg, args.policy, world, runs=runs, noise_factor=noise, seed=args.seed)
+      print(f"evaluating {args.policy}: {len(world.lanes) * 2 * runs} runs on the "
+            f"{world.kind} world (compiling first)...", file=sys.stderr, flush=True)
+      doc = evaluate(cfg, args.policy, world, runs=runs, noise_factor=noise, seed=args.seed,
+                     which=args.which)
       write_results(doc, world, out)
       print(results_markdown(doc))
   except (PolicyError, FileNotFoundError, ValueError) as e:

@@ -1,8 +1,13 @@
 """Export a trained actor to a numpy-only .npz policy file for `mjxvine.deploy`, or ONNX.
 
     python -m mjxvine.export --checkpoint RUN_DIR [--out policy.npz] [--config FILE]
+    python -m mjxvine.export --checkpoint RUN_DIR --which last      # not the best checkpoint
     python -m mjxvine.export --checkpoint RUN_DIR --format onnx [--out policy.onnx]
     python -m mjxvine.export --checkpoint policy.npz --format onnx   # convert a policy file
+
+A run's checkpoint is RUN_DIR/checkpoints/best/<step>/ (the best one; --which best, the
+default) or the newest RUN_DIR/checkpoints/<step>/ (--which last); a run without a best
+checkpoint gives its last one. The run's config.yaml gives the metadata unless --config.
 
 The file holds the actor's float32 arrays under their flax paths ("tower/conv0/kernel",
 "dense0/bias", "mean/kernel", ...) and a JSON `__meta__` entry: format version, image
@@ -54,8 +59,9 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
       "max_depth_m": cfg.camera.max_depth_m, "depth_scale": 1.0 / cfg.camera.max_depth_m,
       "action_low": [0.0, -cfg.env.w_max], "action_high": [cfg.env.v_max, cfg.env.w_max],
       "control_dt": cfg.env.control_dt, "config_hash": config_lib.config_hash(cfg),
-      # the state's yaw is the IMU yaw plus this offset, wrapped to [-pi, pi)
-      "yaw_offset_deg": cfg.env.yaw_offset_deg,
+      # the state's yaw: "start", the IMU yaw minus the yaw at the row entrance; "world",
+      # the IMU yaw plus yaw_offset_deg (both wrapped to [-pi, pi)); NumpyPolicy.yaw_input
+      "yaw_reference": cfg.env.yaw_reference, "yaw_offset_deg": cfg.env.yaw_offset_deg,
   }
 
 
@@ -215,16 +221,56 @@ def export_onnx(source: Any, path: str | Path, meta: dict | None = None,
 # ----------------------------------------------------------------------------------------
 # CLI: restore the actor params from an orbax checkpoint.
 
+WHICH = ("best", "last")
 
-def _find_checkpoint(root: Path) -> Path:
-  """The orbax checkpoint item under `root`: itself, or the one with the highest step."""
-  if (root / "_METADATA").is_file():
-    return root
-  found = [p.parent for p in root.rglob("_METADATA")]
-  if not found:
-    raise FileNotFoundError(f"{root}: no orbax checkpoint (no _METADATA file) inside")
-  step = lambda p: tuple(int(x) for x in re.findall(r"\d+", str(p.relative_to(root))))
-  return max(found, key=lambda p: (step(p), str(p)))
+
+def _item_of(step: Path) -> Path | None:
+  """The orbax item dir of a step dir: itself when it holds _METADATA, else its item
+  subdir ("default" for a CheckpointManager step); None when there is none."""
+  if (step / "_METADATA").is_file():
+    return step
+  items = sorted(p for p in step.iterdir() if (p / "_METADATA").is_file()) if step.is_dir() else []
+  return next((p for p in items if p.name == "default"), items[0] if items else None)
+
+
+def _steps(manager: Path) -> dict[int, Path]:
+  """{step: item dir} of the finished steps of a CheckpointManager dir (numeric subdirs;
+  orbax writes a step under a temporary name and renames it once complete)."""
+  if not manager.is_dir():
+    return {}
+  found = {int(p.name): _item_of(p) for p in manager.iterdir() if p.name.isdigit()}
+  return {step: item for step, item in found.items() if item is not None}
+
+
+def checkpoint_item(path: str | Path, which: str = "best") -> Path:
+  """The absolute orbax item dir to restore from a run dir, its `checkpoints` dir (or
+  `checkpoints/best`), a step dir or an item dir (one holding _METADATA: used as is).
+
+  which="best": the highest step under checkpoints/best/, else the last regular step;
+  which="last": the highest step directly under checkpoints/ (never best/). The path is
+  made absolute (orbax refuses relative ones). FileNotFoundError "no such run directory:
+  PATH" when `path` does not exist, and one naming `path` when it holds no checkpoint.
+  """
+  if which not in WHICH:
+    raise ValueError(f"which={which!r}: expected one of {', '.join(WHICH)}")
+  given = Path(path)
+  path = given.expanduser().resolve()
+  if not path.exists():
+    raise FileNotFoundError(f"no such run directory: {given}")
+  item = _item_of(path)
+  if item is not None:
+    return item
+  root = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+  steps = (_steps(root / "best") if which == "best" else {}) or _steps(root)
+  if not steps:
+    raise FileNotFoundError(f"{given}: no orbax checkpoint inside (no checkpoints/<step>/ "
+                            "with a _METADATA file)")
+  return steps[max(steps)]
+
+
+def _run_dir(item: Path) -> Path | None:
+  """The run dir of a checkpoint item (the parent of its `checkpoints` dir), or None."""
+  return next((p.parent for p in item.parents if p.name == "checkpoints"), None)
 
 
 def _find_key(tree: Any, key: str) -> Any:
@@ -241,12 +287,13 @@ def _find_key(tree: Any, key: str) -> Any:
   return None
 
 
-def load_actor_params(checkpoint: str | Path) -> tuple[Any, Path]:
-  """Restores (as numpy) the `actor_params` entry of the latest checkpoint under a dir."""
+def load_actor_params(checkpoint: str | Path, which: str = "best") -> tuple[Any, Path]:
+  """(actor_params as numpy arrays, item dir) of the checkpoint that `checkpoint_item`
+  picks under a run dir (or checkpoint dir)."""
   import jax
   import orbax.checkpoint as ocp
 
-  item = _find_checkpoint(Path(checkpoint))
+  item = checkpoint_item(checkpoint, which)
   ckpt = ocp.PyTreeCheckpointer()
   tree_meta = ckpt.metadata(item).item_metadata
   tree_meta = getattr(tree_meta, "tree", tree_meta)
@@ -258,12 +305,22 @@ def load_actor_params(checkpoint: str | Path) -> tuple[Any, Path]:
   return actor, item
 
 
-def main(argv=None) -> None:
+def _fail(message: str) -> int:
+  """One line on stderr; the exit status of usage and input errors (argparse's)."""
+  print(f"export error: {message}", file=sys.stderr)
+  return 2
+
+
+def main(argv=None) -> int:
   parser = argparse.ArgumentParser(prog="python -m mjxvine.export", description=__doc__,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
   parser.add_argument("--checkpoint", required=True,
-                      help="run dir or orbax checkpoint dir (the latest step is used); with "
-                           "--format onnx also an exported .npz policy file")
+                      help="run dir, its checkpoints/ dir or one orbax checkpoint step (see "
+                           "--which); with --format onnx also an exported .npz policy file")
+  parser.add_argument("--which", choices=WHICH, default="best",
+                      help="which checkpoint of a run: best (the highest step under "
+                           "RUN/checkpoints/best/; the last step when the run has none) or "
+                           "last (the newest step under RUN/checkpoints/). Default: best")
   parser.add_argument("--format", choices=("npz", "onnx"), default="npz",
                       help="npz (numpy-only mjxvine.deploy) or onnx (needs the onnx package)")
   parser.add_argument("--out", default=None,
@@ -276,28 +333,36 @@ def main(argv=None) -> None:
   src = Path(args.checkpoint)
   if src.is_file():
     if args.format != "onnx":
-      raise SystemExit(f"export error: {src} is a file; an .npz policy converts only to "
-                       "--format onnx")
+      return _fail(f"{src} is a file; an .npz policy converts only to --format onnx")
     out = Path(args.out) if args.out else src.with_suffix(".onnx")
     try:
       export_onnx(src, out, preprocess=args.preprocess)
     except ValueError as e:  # PolicyFormatError
-      raise SystemExit(f"export error: {e}") from None
+      return _fail(str(e))
     print(f"wrote {out} (from {src})", file=sys.stderr)
-    return
-  if args.config is None and (src / "config.yaml").is_file():
-    args.config = str(src / "config.yaml")
-  cfg = config_lib.config_from_args(args)
+    return 0
+  if not src.exists():
+    return _fail(f"no such {'policy file' if src.suffix == '.npz' else 'run directory'}: {src}")
   try:
-    actor, item = load_actor_params(src)
+    actor, item = load_actor_params(src, args.which)
   except (FileNotFoundError, KeyError) as e:
-    raise SystemExit(f"export error: {e}") from None
-  out = Path(args.out) if args.out else src / f"policy.{args.format}"
-  if args.format == "onnx":
-    export_onnx(actor_arrays(actor, meta_from_config(cfg)), out, preprocess=args.preprocess)
-  else:
-    export_actor(actor, out, meta_from_config(cfg))
+    return _fail(e.args[0] if e.args else str(e))  # a KeyError's str() is quoted
+  run_dir = _run_dir(item)
+  if args.config is None:  # the run's own config: image size, FOVs, action box
+    args.config = next((str(d / "config.yaml") for d in (run_dir, src)
+                        if d and (d / "config.yaml").is_file()), None)
+  cfg = config_lib.config_from_args(args)
+  out = Path(args.out) if args.out else (run_dir or src) / f"policy.{args.format}"
+  try:
+    if args.format == "onnx":
+      export_onnx(actor_arrays(actor, meta_from_config(cfg)), out, preprocess=args.preprocess)
+    else:
+      export_actor(actor, out, meta_from_config(cfg))
+  except ValueError as e:  # no conv tower, or arrays that do not fit the metadata
+    return _fail(f"{item}: {e}")
   print(f"wrote {out} (from {item}, config {args.config or 'defaults'})", file=sys.stderr)
+  return 0
+
 
 if __name__ == "__main__":
-  main()
+  sys.exit(main())

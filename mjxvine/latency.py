@@ -17,13 +17,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from mjxvine.deploy import NumpyPolicy, set_blas_threads
+from mjxvine.deploy import NumpyPolicy, PolicyError, PolicyFormatError, set_blas_threads
 
 
 def measure(fn: Callable[[], object], calls: int = 1000, warmup: int = 50) -> dict:
@@ -71,7 +72,11 @@ def onnx_latency(path: str | Path, threads: int = 1, calls: int = 1000, seed: in
   opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
   opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
   opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
-  sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+  try:
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+  except Exception as e:  # noqa: BLE001 - onnxruntime's load errors have no public base
+    raise PolicyFormatError(f"{path}: not a valid ONNX model ({str(e).splitlines()[0][:160]})"
+                            ) from None
   _, h, w, _ = sess.get_inputs()[0].shape
   meta = json.loads(sess.get_modelmeta().custom_metadata_map.get("mjxvine_meta", "{}"))
   depth, state = _inputs(h, w, float(meta.get("max_depth_m", 5.0)), seed)
@@ -79,11 +84,11 @@ def onnx_latency(path: str | Path, threads: int = 1, calls: int = 1000, seed: in
   return measure(lambda: sess.run(["action"], feed), calls)
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
   parser = argparse.ArgumentParser(prog="python -m mjxvine.latency", description=__doc__,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
   parser.add_argument("policy", help="an .npz (NumpyPolicy) or .onnx (onnxruntime) file")
-  parser.add_argument("--calls", type=int, default=1000)
+  parser.add_argument("--calls", type=int, default=1000, help="timed calls, >= 1")
   parser.add_argument("--threads", type=int, default=None,
                       help="onnxruntime intra-op threads (default 1); numpy: BLAS threads "
                            "via threadpoolctl, if installed")
@@ -91,15 +96,27 @@ def main(argv=None) -> None:
                       help="onnxruntime: worker threads sleep instead of spinning")
   parser.add_argument("--seed", type=int, default=0)
   args = parser.parse_args(argv)
-  if args.policy.endswith(".onnx"):
-    result = onnx_latency(args.policy, args.threads or 1, args.calls, args.seed,
-                          not args.no_spinning)
-  else:
-    if args.threads is not None and not set_blas_threads(args.threads):
-      parser.error("--threads with a .npz needs threadpoolctl; set OPENBLAS_NUM_THREADS")
-    result = numpy_latency(args.policy, args.calls, args.seed)
+  if args.calls < 1:
+    parser.error(f"--calls {args.calls}: need at least 1 call")
+  if args.threads is not None and args.threads < 1:
+    parser.error(f"--threads {args.threads}: need at least 1 thread")
+  if not Path(args.policy).is_file():
+    print(f"latency error: no such policy file: {args.policy}", file=sys.stderr)
+    return 2
+  try:
+    if args.policy.endswith(".onnx"):
+      result = onnx_latency(args.policy, args.threads or 1, args.calls, args.seed,
+                            not args.no_spinning)
+    else:
+      if args.threads is not None and not set_blas_threads(args.threads):
+        parser.error("--threads with a .npz needs threadpoolctl; set OPENBLAS_NUM_THREADS")
+      result = numpy_latency(args.policy, args.calls, args.seed)
+  except PolicyError as e:  # an unreadable or incomplete .npz or .onnx
+    print(f"latency error: {e}", file=sys.stderr)
+    return 2
   print(json.dumps(result))
+  return 0
 
 
 if __name__ == "__main__":
-  main()
+  sys.exit(main())

@@ -13,6 +13,11 @@ the actor outputs a Gaussian over pre-squash values `u`, and `a = low + (tanh(u)
 With a 112x112 depth image and a 3-dim state the actor has exactly 104,100 parameters
 and each critic 103,841 (ReLU after every conv; the mean and log-std heads are two
 separate Dense(2) layers on the last hidden layer).
+
+Mixed precision (`compute_dtype=bfloat16`): the convs and hidden layers compute in
+bfloat16 on float32 parameters (flax casts them per call); the tower's pooled features,
+the heads (mean, log-std, Q) and everything after them stay float32, so losses,
+gradients and optimiser states are float32.
 """
 
 from __future__ import annotations
@@ -38,20 +43,22 @@ class ConvTower(nn.Module):
   """
   features: int = 32
   depth_scale: float = 1.0  # the input is multiplied by this (e.g. 1 / max_depth)
+  dtype: Any = jnp.float32  # computation dtype of the convs
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     batch_shape = x.shape[:-3]
-    x = x.reshape((-1,) + x.shape[-3:]) * self.depth_scale
+    x = (x.reshape((-1,) + x.shape[-3:]) * self.depth_scale).astype(self.dtype)
     if min(tower_output_size(x.shape[-3:-1])) < 1:
       raise ValueError(f"depth image {x.shape[-3:-1]} is too small for the conv tower "
                        "(at least 33x33)")
     for i, (stride, pool) in enumerate(CONV_LAYERS):
-      x = nn.Conv(self.features, (3, 3), (stride, stride), padding="VALID", name=f"conv{i}")(x)
+      x = nn.Conv(self.features, (3, 3), (stride, stride), padding="VALID", dtype=self.dtype,
+                  name=f"conv{i}")(x)
       x = nn.relu(x)
       if pool:
         x = nn.max_pool(x, (2, 2), strides=(2, 2), padding="VALID")
-    x = jnp.mean(x, axis=(-3, -2))
+    x = jnp.mean(x.astype(jnp.float32), axis=(-3, -2))
     return x.reshape(batch_shape + (self.features,))
 
 
@@ -66,10 +73,11 @@ def tower_output_size(hw: Sequence[int]) -> tuple[int, ...]:
   return tuple(out)
 
 
-def _torso_input(obs: Obs, features: int, depth_scale: float, extra=()) -> jax.Array:
+def _torso_input(obs: Obs, features: int, depth_scale: float, extra=(),
+                 dtype=jnp.float32) -> jax.Array:
   """Concatenates [tower(depth), state, *extra] (dict obs) or [obs, *extra] (vector)."""
   if isinstance(obs, dict):
-    feats = ConvTower(features, depth_scale, name="tower")(obs["depth"])
+    feats = ConvTower(features, depth_scale, dtype, name="tower")(obs["depth"])
     parts = [feats, obs["state"]]
   else:
     parts = [obs]
@@ -88,12 +96,14 @@ class Actor(nn.Module):
   depth_scale: float = 1.0
   log_std_min: float = -20.0
   log_std_max: float = 2.0
+  dtype: Any = jnp.float32  # computation dtype of the tower and hidden layers
 
   @nn.compact
   def __call__(self, obs: Obs) -> tuple[jax.Array, jax.Array]:
-    x = _torso_input(obs, self.conv_features, self.depth_scale)
+    x = _torso_input(obs, self.conv_features, self.depth_scale, dtype=self.dtype)
     for i, h in enumerate(self.hidden):
-      x = nn.relu(nn.Dense(h, name=f"dense{i}")(x))
+      x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
+    x = x.astype(jnp.float32)
     mean = nn.Dense(self.action_size, name="mean")(x)
     log_std = nn.Dense(self.action_size, name="log_std")(x)
     return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
@@ -104,13 +114,15 @@ class Critic(nn.Module):
   hidden: Sequence[int] = (256, 256)
   conv_features: int = 32
   depth_scale: float = 1.0
+  dtype: Any = jnp.float32
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
-    x = _torso_input(obs, self.conv_features, self.depth_scale, extra=(action,))
+    x = _torso_input(obs, self.conv_features, self.depth_scale, extra=(action,),
+                     dtype=self.dtype)
     for i, h in enumerate(self.hidden):
-      x = nn.relu(nn.Dense(h, name=f"dense{i}")(x))
-    return nn.Dense(1, name="q")(x)[..., 0]
+      x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
+    return nn.Dense(1, name="q")(x.astype(jnp.float32))[..., 0]
 
 
 class TwinCritic(nn.Module):
@@ -123,11 +135,13 @@ class TwinCritic(nn.Module):
   conv_features: int = 32
   depth_scale: float = 1.0
   num: int = 2
+  dtype: Any = jnp.float32
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
     return jnp.stack([
-        Critic(self.hidden, self.conv_features, self.depth_scale, name=f"critic{i}")(obs, action)
+        Critic(self.hidden, self.conv_features, self.depth_scale, self.dtype,
+               name=f"critic{i}")(obs, action)
         for i in range(self.num)])
 
 
@@ -141,19 +155,23 @@ class SACNetworks(NamedTuple):
 
 def make_networks(action_low: Sequence[float], action_high: Sequence[float], hidden: int = 256,
                   num_hidden: int = 2, conv_features: int = 32, depth_scale: float = 1.0,
-                  log_std_min: float = -20.0, log_std_max: float = 2.0) -> SACNetworks:
+                  log_std_min: float = -20.0, log_std_max: float = 2.0,
+                  compute_dtype: str = "float32") -> SACNetworks:
   """Builds the actor and twin critic for an action box [action_low, action_high].
 
   `depth_scale` multiplies the depth (metres) before the first conv; the SPEC
-  networks are `hidden=256, num_hidden=2, conv_features=32`.
+  networks are `hidden=256, num_hidden=2, conv_features=32`. `compute_dtype`: "float32"
+  or "bfloat16" (mixed precision, see the module docstring).
   """
+  dtype = jnp.dtype(compute_dtype)
   low = jnp.asarray(action_low, jnp.float32)
   high = jnp.asarray(action_high, jnp.float32)
   if low.shape != high.shape or low.ndim != 1 or not bool(jnp.all(high > low)):
     raise ValueError(f"bad action box: low={action_low}, high={action_high}")
   hs = (hidden,) * num_hidden
-  actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, log_std_min, log_std_max)
-  critic = TwinCritic(hs, conv_features, depth_scale)
+  actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, log_std_min, log_std_max,
+                dtype)
+  critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype)
   return SACNetworks(actor, critic, low, high)
 
 
@@ -166,7 +184,8 @@ def make_networks_from_config(cfg) -> SACNetworks:
   return make_networks(
       [0.0, -cfg.env.w_max], [cfg.env.v_max, cfg.env.w_max], hidden=cfg.sac.hidden,
       conv_features=cfg.sac.conv_features, depth_scale=1.0 / cfg.camera.max_depth_m,
-      log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max)
+      log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
+      compute_dtype=cfg.sac.compute_dtype)
 
 
 def init_params(nets: SACNetworks, key: jax.Array, obs: Obs) -> tuple[Any, Any]:

@@ -13,16 +13,17 @@ Needs `env.num_envs` and `sac.batch_size` divisible by the number of devices.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 AXIS = "env"
 
-# Replay-buffer fields laid out (rows, N, ...): split over the env axis. The side ring of
-# truncation frames and the scalar pointers are small and replicated.
-_BUFFER_ENV_FIELDS = ("depth", "rest", "next_rest", "action", "reward", "terminal",
-                      "truncated", "final_slot")
+# Replay-buffer fields are laid out (rows, N, ...) and split over the env axis, but for
+# these: the side ring of truncation frames and the scalar pointers, small and replicated.
+_BUFFER_REPLICATED_FIELDS = ("final_depth", "final_owner", "final_ptr", "rows_written")
 
 
 def make_mesh(num_devices: int = 0) -> Mesh:
@@ -43,19 +44,20 @@ def check_divisible(mesh: Mesh, num_envs: int, batch_size: int) -> None:
 
 def train_state_sharding(ts, mesh: Mesh, seeds: int = 1):
   """NamedShardings for a `mjxvine.train.TrainState` (or its `jax.eval_shape`): env-state
-  leaves and `eps` split along their env axis, replay rows along their env axis, the rest
+  leaves split along their env axis, replay rows along their env axis, the rest
   replicated. With `seeds` > 1 every leaf has a leading seeds axis first."""
   lead = (None,) if seeds > 1 else ()
   env_axis = NamedSharding(mesh, P(*lead, AXIS))
   row_env_axis = NamedSharding(mesh, P(*lead, None, AXIS))
   replicated = NamedSharding(mesh, P())
   like = lambda tree, s: jax.tree.map(lambda _: s, tree)
+  fields = [f.name for f in dataclasses.fields(ts.buffer) if f.metadata.get("pytree_node", True)]
   buffer = ts.buffer.replace(**{
-      f: like(getattr(ts.buffer, f), row_env_axis if f in _BUFFER_ENV_FIELDS else replicated)
-      for f in ("depth", "rest", "next_rest", "action", "reward", "terminal", "truncated",
-                "final_slot", "final_depth", "final_owner", "final_ptr", "rows_written")})
+      f: like(getattr(ts.buffer, f),
+              replicated if f in _BUFFER_REPLICATED_FIELDS else row_env_axis)
+      for f in fields})
   out = like(ts, replicated)
-  return out.replace(env_state=like(ts.env_state, env_axis), eps=env_axis, buffer=buffer)
+  return out.replace(env_state=like(ts.env_state, env_axis), buffer=buffer)
 
 
 def batch_constraint(mesh: Mesh, seeds: int = 1):

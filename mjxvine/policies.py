@@ -3,13 +3,12 @@ exported `.npz`, run as the JAX actor's deterministic (mean) action."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import jax.numpy as jp
-import numpy as np
 
 from mjxvine import networks as nw
+from mjxvine.deploy import PolicyError, read_policy_file
 
 
 def _unflatten(arrays: dict) -> dict:
@@ -23,28 +22,27 @@ def _unflatten(arrays: dict) -> dict:
   return tree
 
 
-def load_actor_params(path: Path, env) -> dict:
-  """Actor params from a .npz export or a run directory, checked against `env`'s camera."""
-  from mjxvine.evaluate import PolicyError
-  from mjxvine.deploy import META_KEY
+def load_actor_params(path: Path, env, which: str = "best") -> dict:
+  """Actor params from a .npz export or a run directory, checked against `env`'s camera.
+
+  which: the checkpoint of a run directory, "best" or "last" (`export.checkpoint_item`).
+  Raises `PolicyError` (`PolicyFormatError` for an unreadable .npz).
+  """
+  path = Path(path)
   if path.suffix == ".npz":
-    try:
-      with np.load(path, allow_pickle=False) as f:
-        meta = json.loads(str(f[META_KEY]))
-        arrays = {k: f[k] for k in f.files if k != META_KEY}
-    except (OSError, KeyError, ValueError) as e:
-      raise PolicyError(f"{path}: not a mjxvine policy file ({e})") from None
+    arrays, meta = read_policy_file(path)  # the format checks of the robot's loader
     size = tuple(meta.get("image_size", ()))
     want = (env.cfg.camera.height, env.cfg.camera.width)
     if size != want:
-      raise PolicyError(f"{path}: trained for {size[0]}x{size[1]} depth images, the "
+      got = "x".join(str(v) for v in size) or "unknown"
+      raise PolicyError(f"{path}: trained for {got} depth images, the "
                         f"evaluation renders {want[0]}x{want[1]} (set camera.height/width)")
     return _unflatten(arrays)
   from mjxvine import export
   try:
-    params, _ = export.load_actor_params(path)
+    params, _ = export.load_actor_params(path, which)
   except (FileNotFoundError, KeyError) as e:
-    raise PolicyError(str(e)) from None
+    raise PolicyError(e.args[0] if e.args else str(e)) from None
   return jax_tree(params)
 
 
@@ -53,10 +51,9 @@ def jax_tree(params):
   return jax.tree.map(jp.asarray, params)
 
 
-def load_actor_policy(path: Path, env):
+def load_actor_policy(path: Path, env, which: str = "best"):
   """policy(state, key) -> deterministic action, for `mjxvine.evaluate`."""
-  from mjxvine.evaluate import PolicyError
-  params = load_actor_params(Path(path), env)
+  params = load_actor_params(Path(path), env, which)
   nets = nw.make_networks_from_config(env.cfg)
   try:
     nets.actor.apply({"params": params}, {

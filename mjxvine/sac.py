@@ -37,7 +37,8 @@ class Transition(NamedTuple):
   action (B, A) in the action box; reward (B,); terminal (B,) 1.0 where the episode
   ended in a true MDP terminal (collision, success, ...); truncated (B,) 1.0 where it
   ended by the time limit only; weight (B,) or None: per-sample weight of the critic
-  loss (the buffer sets 0.0 for a truncated transition whose final frame was evicted).
+  loss (0.0 for a transition to learn nothing from: a physics reset, whose successor is
+  the restored old state, or a truncation whose final frame the buffer evicted).
   """
   obs: Obs
   action: jax.Array
@@ -144,8 +145,10 @@ class SAC(NamedTuple):
 
   init(key, obs) -> LearnerState                       obs: example with a batch axis
   update(state, batch, key) -> (state, metrics)        one gradient step
-  update_many(state, buffer, key) -> (state, metrics)  cfg.grad_steps_per_iter steps
-                                                        on cfg.batch_size samples each
+  update_from(state, buffer, key) -> (state, metrics)  one step on cfg.batch_size samples
+  update_many(state, buffer, key) -> (state, metrics)  cfg.grad_steps_per_iter of those,
+                                                        with keys split(key, G), metrics
+                                                        averaged
   act(actor_params, obs, key) -> action (..., A)       stochastic (squashed sample)
   act_deterministic(actor_params, obs) -> (..., A)     squashed mean (test time)
   """
@@ -153,27 +156,28 @@ class SAC(NamedTuple):
   cfg: SACConfig
   init: Callable
   update: Callable
+  update_from: Callable
   update_many: Callable
   act: Callable
   act_deterministic: Callable
 
 
-def make_sac(nets: nw.SACNetworks, cfg: SACConfig, unroll: int | bool | None = None,
+def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
              shard_batch: Callable = lambda batch: batch) -> SAC:
   """Builds the SAC learner for `nets` with hyper-parameters `cfg`.
 
-  shard_batch: applied to every sampled batch in `update_many`; `mjxvine.parallel`'s
-  `batch_constraint` splits it over the devices (data-parallel gradients).
+  shard_batch: applied to every sampled batch; `mjxvine.parallel`'s `batch_constraint`
+  splits it over the devices (data-parallel gradients).
 
-  unroll: `lax.scan` unroll of `update_many`. None: fully unrolled on the CPU backend
-  when grad_steps_per_iter <= 16 (XLA:CPU runs convolutions inside a loop body ~20x
-  slower, jax-ml/jax#12868), else 1 (a rolled loop: fast compiles on GPU).
+  `update_many`'s loop is fully unrolled on the CPU backend when grad_steps_per_iter <=
+  16 (XLA:CPU runs convolutions inside a loop body ~20x slower, jax-ml/jax#12868), else
+  rolled (fast compiles on GPU); the trainer's CPU path calls `update_from` G times
+  from the host instead, which compiles one step only.
   """
   # The learning rate lives in the optimiser state (inject_hyperparams), so that runs
   # vmapped over seeds can also differ in it (`mjxvine.train` sweeps).
   opt = optax.inject_hyperparams(optax.adam)(learning_rate=cfg.learning_rate)
-  if unroll is None:
-    unroll = jax.default_backend() == "cpu" and cfg.grad_steps_per_iter <= 16
+  unroll = jax.default_backend() == "cpu" and cfg.grad_steps_per_iter <= 16
 
   def init(key: jax.Array, obs: Obs) -> LearnerState:
     actor_params, critic_params = nw.init_params(nets, key, obs)
@@ -219,11 +223,13 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig, unroll: int | bool | None = N
     }
     return new_state, metrics
 
+  def update_from(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array):
+    k_sample, k_update = jax.random.split(key)
+    return update(state, shard_batch(sample(buffer, k_sample, cfg.batch_size)), k_update)
+
   def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array):
-    def body(st, k):
-      k_sample, k_update = jax.random.split(k)
-      return update(st, shard_batch(sample(buffer, k_sample, cfg.batch_size)), k_update)
-    state, metrics = jax.lax.scan(body, state, jax.random.split(key, cfg.grad_steps_per_iter),
+    state, metrics = jax.lax.scan(lambda st, k: update_from(st, buffer, k), state,
+                                  jax.random.split(key, cfg.grad_steps_per_iter),
                                   unroll=unroll)
     return state, jax.tree.map(jnp.mean, metrics)
 
@@ -235,7 +241,7 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig, unroll: int | bool | None = N
     mean, _ = nets.actor.apply({"params": actor_params}, obs)
     return nw.deterministic_action(mean, nets.action_low, nets.action_high)
 
-  return SAC(nets, cfg, init, update, update_many, act, act_deterministic)
+  return SAC(nets, cfg, init, update, update_from, update_many, act, act_deterministic)
 
 
 # ----------------------------------------------------------------------------------------
@@ -260,7 +266,8 @@ class ReplayBuffer(flax.struct.PyTreeNode):
 
   depth (S, N, H, W, 1) uint, or None for vector observations; rest (S, N, ...) the
   non-depth observation leaves and next_rest their successors; action (S, N, A);
-  reward (S, N); terminal, truncated (S, N) bool; final_slot (S, N) int32 (-1: none);
+  reward (S, N); terminal, truncated, valid (S, N) bool (valid: the transition's weight
+  is nonzero); final_slot (S, N) int32 (-1: none);
   final_depth (K, H, W, 1); final_owner (K,) int32 (r * N + n, -1: free);
   final_ptr () int32; rows_written () int32 (inserts so far).
   """
@@ -271,6 +278,7 @@ class ReplayBuffer(flax.struct.PyTreeNode):
   reward: jax.Array
   terminal: jax.Array
   truncated: jax.Array
+  valid: jax.Array
   final_slot: jax.Array | None
   final_depth: jax.Array | None
   final_owner: jax.Array | None
@@ -333,7 +341,7 @@ def init_buffer(obs: Obs, action_size: int, capacity: int, max_depth: float = 5.
       action=jnp.zeros((rows, n, action_size), jnp.float32),
       reward=jnp.zeros((rows, n), jnp.float32),
       terminal=jnp.zeros((rows, n), bool), truncated=jnp.zeros((rows, n), bool),
-      final_ptr=jnp.zeros((), jnp.int32), rows_written=jnp.zeros((), jnp.int32),
+      valid=jnp.zeros((rows, n), bool), final_ptr=jnp.zeros((), jnp.int32), rows_written=jnp.zeros((), jnp.int32),
       max_depth=float(max_depth), **kw)
 
 
@@ -347,6 +355,7 @@ def insert(buffer: ReplayBuffer, tr: Transition) -> ReplayBuffer:
 
   Consecutive inserts must be consecutive steps of the same envs (env n in slot n),
   as the next depth of a non-final transition is read from the following row.
+  `tr.weight` (N,) or None: transitions of weight 0 are stored but sampled with weight 0.
   """
   s, n = buffer.num_rows, buffer.num_envs
   r = buffer.rows_written % s
@@ -360,6 +369,7 @@ def insert(buffer: ReplayBuffer, tr: Transition) -> ReplayBuffer:
       next_rest=jax.tree.map(setrow, buffer.next_rest, next_rest),
       action=setrow(buffer.action, tr.action), reward=setrow(buffer.reward, tr.reward),
       terminal=setrow(buffer.terminal, terminal), truncated=setrow(buffer.truncated, truncated),
+      valid=setrow(buffer.valid, jnp.ones_like(terminal) if tr.weight is None else tr.weight > 0),
       rows_written=buffer.rows_written + 1)
   if buffer.depth is not None:
     k = buffer.final_owner.shape[0]
@@ -404,7 +414,7 @@ def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
   r1 = (r + 1) % s
   get = lambda x: x[r, e]
   terminal, truncated = get(buffer.terminal), get(buffer.truncated)
-  weight = jnp.ones((batch_size,), jnp.float32)
+  weight = get(buffer.valid).astype(jnp.float32)
   depth = next_depth = None
   if buffer.depth is not None:
     need = truncated & ~terminal
@@ -413,7 +423,7 @@ def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
     nd = jnp.where(need[:, None, None, None], side, buffer.depth[r1, e])
     depth = dequantize_depth(get(buffer.depth), buffer.max_depth)
     next_depth = dequantize_depth(nd, buffer.max_depth)
-    weight = jnp.where(need & (fs < 0), 0.0, 1.0)
+    weight = jnp.where(need & (fs < 0), 0.0, weight)
   return Transition(
       obs=_join_obs(depth, jax.tree.map(get, buffer.rest)),
       action=get(buffer.action), reward=get(buffer.reward),
@@ -429,17 +439,24 @@ def explore_action(key: jax.Array, policy_action: jax.Array, eps: jax.Array, low
                    high: jax.Array, warmup: jax.Array | bool) -> jax.Array:
   """Warm-up / epsilon-greedy exploration on top of the SAC sample.
 
-  policy_action (N, A); eps (N,) per-env probabilities; low, high (A,); warmup: bool
-  scalar or (N,). Where warming up, or with probability eps, the action is uniform in
-  the box with each dimension drawn independently; otherwise policy_action.
+  policy_action (N, A); eps () or (N,) probability; low, high (A,); warmup: bool scalar
+  or (N,). Where warming up, or with probability eps, the action is uniform in the box
+  with each dimension drawn independently; otherwise policy_action.
   """
   k_uniform, k_coin = jax.random.split(key)
   rand = jax.random.uniform(k_uniform, policy_action.shape, policy_action.dtype, low, high)
-  explore = jnp.logical_or(warmup, jax.random.uniform(k_coin, eps.shape) < eps)
+  coin = jax.random.uniform(k_coin, policy_action.shape[:-1])
+  explore = jnp.logical_or(warmup, coin < eps)
   return jnp.where(explore[..., None], rand, policy_action)
 
 
-def decay_eps(eps: jax.Array, done: jax.Array, decay: float = 0.992,
-              floor: float = 0.05) -> jax.Array:
-  """Per-env epsilon after a step: eps * decay (not below floor) where done, else eps."""
-  return jnp.where(done, jnp.maximum(eps * decay, floor), eps)
+def epsilon(cfg: SACConfig, env_steps: jax.Array, total_env_steps: int) -> jax.Array:
+  """Exploration probability () after `env_steps` env steps summed over all envs.
+
+  The budget `total_env_steps` counts as `cfg.eps_budget_episodes` episodes, and epsilon
+  is multiplied by `cfg.eps_decay` per such episode, floored at `cfg.eps_min`: it
+  reaches the floor at the same fraction of the budget whatever the number of envs (the
+  paper's 0.992 per episode over 1500 episodes: at 25 %).
+  """
+  episodes = cfg.eps_budget_episodes * jnp.asarray(env_steps, jnp.float32) / total_env_steps
+  return jnp.maximum(cfg.eps_start * jnp.power(cfg.eps_decay, episodes), cfg.eps_min)

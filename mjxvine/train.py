@@ -37,9 +37,10 @@ import numpy as np
 from mjxvine import networks as nw
 from mjxvine import parallel
 from mjxvine import sac as sac_lib
+from mjxvine import starts
 from mjxvine.config import (Config, add_config_args, config_from_args, load_config,
                             parse_sweep, replace, to_yaml)
-from mjxvine.env import SUCCESS, VineyardEnv
+from mjxvine.env import PHYSICS, SUCCESS, TIMEOUT, VineyardEnv
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "default.yaml"
 
@@ -49,15 +50,32 @@ class TrainState(flax.struct.PyTreeNode):
   learner: sac_lib.LearnerState
   buffer: sac_lib.ReplayBuffer
   env_state: Any
-  eps: jax.Array          # (N,) per-env exploration probability
   key: jax.Array
   env_steps: jax.Array    # () int32, summed over envs
   episodes: jax.Array     # () int32 finished episodes
+  budget: jax.Array       # () float32 train.total_env_steps, for the epsilon schedule
   # Sums since the last log (reset by the host): finished episodes, their returns,
-  # successes, gradient steps.
+  # successes and time-outs; commanded speed (m/s) summed over every env step.
   log_episodes: jax.Array
   log_return: jax.Array
   log_success: jax.Array
+  log_timeout: jax.Array
+  log_speed: jax.Array
+
+  def reset_log(self) -> "TrainState":
+    zero = jp.zeros_like
+    return self.replace(log_episodes=zero(self.log_episodes), log_return=zero(self.log_return),
+                        log_success=zero(self.log_success), log_timeout=zero(self.log_timeout),
+                        log_speed=zero(self.log_speed))
+
+
+def learning(cfg: Config, env_steps, rows_written):
+  """Whether the iteration that starts at `env_steps` (summed over envs), after its insert
+  brought the replay to `rows_written` rows, takes gradient steps: past the warm-up, with
+  a full batch sampleable. The one rule of the device (traced) and host (ints) paths."""
+  n = cfg.env.num_envs
+  sampleable = (jp.minimum(rows_written, cfg.sac.buffer_size // n) - 1) * n
+  return (env_steps + n >= cfg.sac.warmup_steps) & (sampleable >= cfg.sac.batch_size)
 
 
 class NonFiniteError(RuntimeError):
@@ -66,15 +84,18 @@ class NonFiniteError(RuntimeError):
 
 def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
   """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
-  iteration(TrainState, None) -> (TrainState, metrics), summarize). `shard_batch`: see
-  `mjxvine.sac.make_sac` (data parallelism over devices)."""
+  collect, learn_step, summarize): a chunk is `train.iters_per_chunk` iterations, each
+  `collect` (env step, replay insert) then, once `learning`, G = sac.grad_steps_per_iter
+  `learn_step`s; `chunk` runs them on device, the host path calls the pieces.
+  `shard_batch`: see `mjxvine.sac.make_sac` (data parallelism over devices)."""
   n = cfg.env.num_envs
   # The action box comes from the env: the vineyard's [0, v_max] x [-w_max, w_max], or
   # [-1, 1] for a brax env behind `BraxAdapter`.
   nets = nw.make_networks(env.action_low, env.action_high, hidden=cfg.sac.hidden,
                           conv_features=cfg.sac.conv_features,
                           depth_scale=1.0 / cfg.camera.max_depth_m,
-                          log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max)
+                          log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
+                          compute_dtype=cfg.sac.compute_dtype)
   sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch)
   warmup = cfg.sac.warmup_steps
 
@@ -85,50 +106,57 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     buffer = sac_lib.init_buffer(env_state.obs, env.action_size, cfg.sac.buffer_size,
                                  cfg.camera.max_depth_m,
                                  depth_dtype=jp.dtype(cfg.sac.replay_depth_dtype))
-    z = jp.zeros((), jp.int32)
-    return TrainState(learner=learner, buffer=buffer, env_state=env_state,
-                      eps=jp.full((n,), cfg.sac.eps_start, jp.float32), key=k_run,
-                      env_steps=z, episodes=z, log_episodes=z, log_return=jp.zeros(()),
-                      log_success=z)
+    z, zf = jp.zeros((), jp.int32), jp.zeros((), jp.float32)
+    return TrainState(learner=learner, buffer=buffer, env_state=env_state, key=k_run,
+                      env_steps=z, episodes=z, budget=zf, log_episodes=z, log_return=zf,
+                      log_success=z, log_timeout=z, log_speed=zf)
 
-  def iteration(ts: TrainState, _, learn_now: bool | None = None):
-    """One iteration. `learn_now` None decides on device (lax.cond); True/False is a
-    static decision made by the host (the CPU path: XLA runs convolutions inside a
-    conditional or loop body slowly on CPU)."""
+  def collect(ts: TrainState):
+    """One env step of the N envs with exploration, inserted into the replay. Returns the
+    new state, the key of this iteration's gradient steps and whether they are due."""
     key, k_act, k_explore, k_update = jax.random.split(ts.key, 4)
     obs = ts.env_state.obs
     policy_action = sac.act(ts.learner.actor_params, obs, k_act)
     in_warmup = ts.env_steps < warmup
-    action = sac_lib.explore_action(k_explore, policy_action, ts.eps, env.action_low,
+    eps = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
+    action = sac_lib.explore_action(k_explore, policy_action, eps, env.action_low,
                                     env.action_high, in_warmup)
     env_state, final_obs = env.step_batch(ts.env_state, action)
     done = env_state.done > 0
     truncated = done & (env_state.info["truncation"] > 0)
+    outcome = env_state.info["last_outcome"]
+    # A physics reset's successor is the restored old state: nothing to learn from.
+    weight = jp.where(done & (outcome == PHYSICS), 0.0, 1.0)
     tr = sac_lib.Transition(obs=obs, action=action,
                             reward=env_state.reward * cfg.sac.reward_scale,
                             terminal=(done & ~truncated).astype(jp.float32),
-                            truncated=truncated.astype(jp.float32), next_obs=final_obs)
+                            truncated=truncated.astype(jp.float32), next_obs=final_obs,
+                            weight=weight)
     buffer = sac_lib.insert(ts.buffer, tr)
-    learn = (ts.env_steps + n >= warmup) & (sac_lib.num_sampleable(buffer) >= cfg.sac.batch_size)
-    if learn_now is None:
-      learner, metrics = jax.lax.cond(
-          learn, lambda: sac.update_many(ts.learner, buffer, k_update),
-          lambda: (ts.learner, _zero_metrics(sac, ts.learner, buffer, k_update)))
-    elif learn_now:
-      learner, metrics = sac.update_many(ts.learner, buffer, k_update)
-    else:
-      learner, metrics = ts.learner, _zero_metrics(sac, ts.learner, buffer, k_update)
-      learn = jp.zeros((), bool)
-    metrics["learning"] = learn.astype(jp.float32)
-    success = done & (env_state.info["last_outcome"] == SUCCESS)
+    learn = learning(cfg, ts.env_steps, buffer.rows_written)
     ts = ts.replace(
-        learner=learner, buffer=buffer, env_state=env_state, key=key,
-        eps=sac_lib.decay_eps(ts.eps, done, cfg.sac.eps_decay, cfg.sac.eps_min),
+        buffer=buffer, env_state=env_state, key=key,
         env_steps=ts.env_steps + n, episodes=ts.episodes + done.sum(),
         log_episodes=ts.log_episodes + done.sum(),
         log_return=ts.log_return + jp.sum(jp.where(done, env_state.info["last_return"], 0.0)),
-        log_success=ts.log_success + success.sum())
-    return ts, metrics
+        log_success=ts.log_success + jp.sum(done & (outcome == SUCCESS)),
+        log_timeout=ts.log_timeout + jp.sum(done & (outcome == TIMEOUT)),
+        log_speed=ts.log_speed + jp.sum(action[:, 0]))
+    return ts, k_update, learn
+
+  def learn_step(ts: TrainState, key: jax.Array):
+    """One gradient step on a replay batch: `key` is one of split(k_update, G)."""
+    learner, metrics = sac.update_from(ts.learner, ts.buffer, key)
+    return ts.replace(learner=learner), metrics
+
+  def iteration(ts: TrainState, _):
+    """collect, then G gradient steps if due (lax.cond): the device path."""
+    ts, k_update, learn = collect(ts)
+    learner, metrics = jax.lax.cond(
+        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update),
+        lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
+    metrics["learning"] = learn.astype(jp.float32)
+    return ts.replace(learner=learner), metrics
 
   def summarize(ts: TrainState, metrics: dict):
     """Chunk metrics: losses averaged over the iterations that learned."""
@@ -136,7 +164,7 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     learning = metrics.pop("learning")
     w = learning / jp.maximum(learning.sum(), 1.0)
     out = {k: jp.sum(v * w) for k, v in metrics.items()}
-    out["eps"] = jp.mean(ts.eps)
+    out["eps"] = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
     out["alpha"] = jp.exp(ts.learner.log_alpha)
     out["finite"] = _all_finite(ts.learner)
     return ts, out
@@ -144,7 +172,7 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
   def chunk(ts: TrainState):
     return summarize(*jax.lax.scan(iteration, ts, None, cfg.train.iters_per_chunk))
 
-  return sac, init, chunk, iteration, summarize
+  return sac, init, chunk, collect, learn_step, summarize
 
 
 def _scan_chunks(cfg: Config) -> bool:
@@ -157,38 +185,58 @@ def _scan_chunks(cfg: Config) -> bool:
 
 
 @functools.lru_cache(maxsize=4)
-def _compiled(cfg: Config, seeds: int, env=None):
-  env = VineyardEnv(cfg) if env is None else env
+def _compiled(cfg: Config, seeds: int, env):
   mesh = parallel.make_mesh(cfg.train.devices)
   parallel.check_divisible(mesh, cfg.env.num_envs, cfg.sac.batch_size)
-  sac, init, chunk, iteration, summarize = make_trainer(
+  sac, init, chunk, collect, learn_step, summarize = make_trainer(
       cfg, env, parallel.batch_constraint(mesh, seeds))
   batch = (lambda f: f) if seeds == 1 else jax.vmap
   init_one = (lambda k: init(k[0])) if seeds == 1 else jax.vmap(init)
   keys = jax.ShapeDtypeStruct((seeds, 2), jp.uint32)
-  shard = parallel.train_state_sharding(jax.eval_shape(init_one, keys), mesh, seeds)
+  abstract = jax.eval_shape(init_one, keys)
+  shard = parallel.train_state_sharding(abstract, mesh, seeds)
   init_fn = jax.jit(init_one, out_shardings=shard)
   # Donating the state lets XLA update the replay buffer in place instead of copying it;
   # pinning its sharding keeps envs and replay rows on their devices between calls.
-  jit_state = functools.partial(jax.jit, donate_argnums=0, out_shardings=(shard, None))
+  jit_state = lambda f, outs: jax.jit(f, donate_argnums=0, out_shardings=(shard, *outs))
   if _scan_chunks(cfg):
-    return sac, init_fn, jit_state(batch(chunk))
-  step_fns = {learn: jit_state(batch(functools.partial(iteration, learn_now=learn)))
-              for learn in (False, True)}
+    return sac, init_fn, jit_state(batch(chunk), (None,))
+  # The host path: the env step and one gradient step are separate programs, so each is
+  # compiled once, and the G gradient steps are G calls (no convolutions in a loop body).
+  collect_fn = jit_state(batch(collect), (None, None))
+  learn_fn = jit_state(batch(learn_step), (None,))
+  g = cfg.sac.grad_steps_per_iter
+  split_fn = jax.jit(batch(lambda k: jax.random.split(k, g)))
   summarize_fn = jax.jit(batch(summarize))
+  lead = () if seeds == 1 else (seeds,)
+  metric_shapes = jax.eval_shape(batch(learn_step), abstract,
+                                 jax.ShapeDtypeStruct(lead + (2,), jp.uint32))[1]
+  idle = {k: jp.zeros(v.shape, v.dtype) for k, v in metric_shapes.items()}
+  idle["learning"] = jp.zeros(lead)
   n = cfg.env.num_envs
+  learned = False  # whether the gradient step has been compiled (said once)
 
   def host_chunk(ts):
+    nonlocal learned
     rows = []
-    steps = int(np.max(jax.device_get(ts.env_steps)))
+    steps, written = (int(np.max(x)) for x in jax.device_get((ts.env_steps,
+                                                              ts.buffer.rows_written)))
     for _ in range(cfg.train.iters_per_chunk):
-      # the same rule as on device: past the warm-up, and a full batch in the replay
-      inserted = steps // n + 1
-      sampleable = (min(inserted, cfg.sac.buffer_size // n) - 1) * n
-      learn = steps + n >= cfg.sac.warmup_steps and sampleable >= cfg.sac.batch_size
-      ts, m = step_fns[learn](ts, None)
+      written += 1
+      learn = bool(learning(cfg, steps, written))
+      ts, k_update, _ = collect_fn(ts)
       steps += n
-      rows.append(m)
+      if not learn:
+        rows.append(idle)
+        continue
+      if not learned:
+        learned = True
+        print(f"learning starts at env step {steps - n}: compiling the gradient step...",
+              file=sys.stderr, flush=True)
+      keys = split_fn(k_update)
+      for i in range(g):
+        ts, m = learn_fn(ts, keys[i] if seeds == 1 else keys[:, i])
+        rows.append({**m, "learning": jp.ones(lead)})
     # iterations axis after the seeds axis, if any
     stacked = jax.tree.map(lambda *x: jp.stack(x, axis=0 if seeds == 1 else 1), *rows)
     return summarize_fn(ts, stacked)
@@ -196,14 +244,25 @@ def _compiled(cfg: Config, seeds: int, env=None):
   return sac, init_fn, host_chunk
 
 
+def _compile_key(cfg: Config) -> Config:
+  """`cfg` without the fields that do not shape the compiled program."""
+  return replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
+                             "save_replay": False, "sweep": "", "num_seeds": 1,
+                             "max_minutes": 0.0, "eval_every_chunks": 0, "eval_starts": 1},
+                 eval={"runs_after_train": 0})
+
+
+@functools.lru_cache(maxsize=4)
+def _default_env(cfg: Config) -> VineyardEnv:
+  return VineyardEnv(cfg)
+
+
 def compiled_trainer(cfg: Config, seeds: int = 1, env=None):
   """(sac, init(keys (seeds, 2)), chunk) jitted, cached per process on everything that
   shapes the compiled program (so a resume in the same process does not recompile).
   `env`: the config's `VineyardEnv` by default, or e.g. a `BraxAdapter`."""
-  return _compiled(replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
-                                       "save_replay": False, "sweep": "", "num_seeds": 1,
-                                       "max_minutes": 0.0},
-                           eval={"runs_after_train": 0}), seeds, env)
+  key = _compile_key(cfg)
+  return _compiled(key, seeds, _default_env(key) if env is None else env)
 
 
 def _zero_metrics(sac, learner, buffer, key):
@@ -219,17 +278,21 @@ def _all_finite(tree) -> jax.Array:
 
 # ---------------------------------------------------------------------- checkpoints
 class Checkpoints:
-  """Orbax checkpoints of the TrainState under RUN_DIR/checkpoints/<step>, written
-  atomically (orbax finalises a step only once complete). Restoring falls back to the
-  previous step, with a message, when the newest is corrupt or partial."""
+  """Orbax checkpoints of the TrainState under RUN_DIR/checkpoints/<chunk>, written
+  atomically (orbax finalises a step only once complete), and the best evaluated one
+  under RUN_DIR/checkpoints/best/<chunk> (its scores in RUN_DIR/best.json). Restoring
+  falls back to the previous step, with a message, when the newest is corrupt or
+  partial."""
 
-  def __init__(self, run_dir: Path, save_replay: bool, keep: int = 3):
+  def __init__(self, run_dir: Path, save_replay: bool):
     import orbax.checkpoint as ocp
     self.ocp = ocp
     self.dir = (run_dir / "checkpoints").resolve()
+    self.best_json = run_dir / "best.json"
     self.save_replay = save_replay
-    self.manager = ocp.CheckpointManager(
-        self.dir, options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
+    options = lambda keep: ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
+    self.manager = ocp.CheckpointManager(self.dir, options=options(3))
+    self.best_manager = ocp.CheckpointManager(self.dir / "best", options=options(1))
 
   def _payload(self, ts) -> dict:
     """{"learner": LearnerState, "state": {index: array}}: the learner keeps its field
@@ -252,15 +315,29 @@ class Checkpoints:
     self.manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)))
     self.manager.wait_until_finished()
 
-  def restore(self, template):
-    """(step, TrainState) of the latest good checkpoint, restored onto `template` (a fresh
-    TrainState of the same config), or None."""
+  def save_best(self, step: int, ts, scores: dict) -> None:
+    """Keeps `ts` as the best checkpoint, with its evaluation `scores`."""
+    self.best_manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)),
+                           force=True)
+    self.best_manager.wait_until_finished()
+    self.best_json.write_text(json.dumps({"chunk": step, **scores}))
+
+  def best_scores(self) -> dict | None:
+    """The scores of the best checkpoint so far (None before the first evaluation)."""
+    if not self.best_json.is_file() or self.best_manager.latest_step() is None:
+      return None
+    return json.loads(self.best_json.read_text())
+
+  def restore(self, template, best: bool = False):
+    """(step, TrainState) of the latest good checkpoint (or the best one), restored onto
+    `template` (a fresh TrainState of the same config), or None."""
+    manager = self.best_manager if best else self.manager
     abstract = jax.tree.map(
         lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding),
         self._payload(template))
-    for step in sorted(self.manager.all_steps(), reverse=True):
+    for step in sorted(manager.all_steps(), reverse=True):
       try:
-        payload = self.manager.restore(step, args=self.ocp.args.StandardRestore(abstract))
+        payload = manager.restore(step, args=self.ocp.args.StandardRestore(abstract))
       except Exception as e:  # noqa: BLE001 - any failure means this step is unusable
         print(f"checkpoint {step} is corrupt or partial ({type(e).__name__}: "
               f"{str(e).splitlines()[0][:120]}); trying the previous one", file=sys.stderr)
@@ -283,6 +360,7 @@ class Logger:
     self.tb = SummaryWriter(str(run_dir / "tb"))
     self.bar = tqdm(total=total, initial=start, unit="step", dynamic_ncols=True,
                     mininterval=2.0, file=sys.stderr)
+    self.last_eval = ""
 
   def log(self, row: dict) -> None:
     if not self.enabled:
@@ -294,10 +372,14 @@ class Logger:
         self.tb.add_scalar(k, v, row["env_steps"])
     self.tb.flush()
     self.bar.n = row["env_steps"]
+    if "eval_success_forward" in row:
+      self.last_eval = (f" | eval F {row['eval_success_forward']:.2f} "
+                        f"R {row['eval_success_reverse']:.2f}")
     self.bar.set_postfix_str(
         f"sps {row['sps']:.0f} ups {row['ups']:.0f} ret {_f(row['return_mean'])} "
         f"succ {_f(row['success_rate'])} eps {row['eps']:.2f} alpha {row['alpha']:.3f} "
-        f"Lq {row['critic_loss']:.3g} Lpi {row['actor_loss']:.3g}", refresh=True)
+        f"Lq {row['critic_loss']:.3g} Lpi {row['actor_loss']:.3g}{self.last_eval}",
+        refresh=True)
 
   def close(self):
     if not self.enabled:
@@ -311,31 +393,87 @@ def _f(x):
   return "-" if x is None else f"{x:.2f}"
 
 
+def _smooth(y: np.ndarray, width: int) -> np.ndarray:
+  """Moving average over the last `width` finite values (NaN where none yet)."""
+  out = np.full(len(y), np.nan)
+  for i in range(len(y)):
+    window = y[max(0, i - width + 1):i + 1]
+    window = window[np.isfinite(window)]
+    if window.size:
+      out[i] = window.mean()
+  return out
+
+
 def plot_learning_curve(run_dir: Path) -> None:
-  """learning_curve.png from metrics.jsonl: return, success rate and losses."""
+  """learning_curve.png from metrics.jsonl: training episodes (with exploration), the
+  deterministic evaluations per direction, losses and the exploration schedule."""
   import matplotlib.pyplot as plt
   rows = [json.loads(l) for l in (run_dir / "metrics.jsonl").read_text().splitlines() if l]
   if not rows:
     return
   members = sorted({r.get("member", r.get("seed", 0)) for r in rows})
-  fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
+  fig, axes = plt.subplots(2, 3, figsize=(15, 7.5))
+  axes = axes.ravel()
+  width = max(1, len(rows) // len(members) // 15)
   for s in members:
     rs = [r for r in rows if r.get("member", r.get("seed", 0)) == s]
-    x = [r["env_steps"] for r in rs]
+    x = np.array([r["env_steps"] for r in rs])
+    col = lambda k: np.array([np.nan if r.get(k) is None else r[k] for r in rs], float)
     label = ", ".join(f"{k.split('.')[-1]} {v:g}" for k, v in rs[0].items()
                       if k.startswith("sac.")) or f"seed {rs[0].get('seed', s)}"
     if any(k.startswith("sac.") for k in rs[0]):
       label += f", seed {rs[0].get('seed', 0)}"
-    for ax, key in zip(axes, ("return_mean", "success_rate", "critic_loss")):
-      ax.plot(x, [np.nan if r[key] is None else r[key] for r in rs], label=label)
-  for ax, title in zip(axes, ("episode return", "success rate", "critic loss")):
-    ax.set_title(title)
+    colour = f"C{s % 10}"
+
+    def curve(ax, key, lab, style="-", c=colour, smooth=True):
+      y = col(key)
+      if smooth and width > 1:
+        ax.plot(x, y, style, color=c, alpha=0.25, lw=0.8)
+        y = _smooth(y, width)
+      ax.plot(x, y, style, color=c, label=lab)
+
+    curve(axes[0], "return_mean", label)
+    curve(axes[1], "success_rate", f"training ({label})")
+    evaluated = np.isfinite(col("eval_success_forward"))
+    for key, style, name in (("eval_success_forward", "o-", "forward"),
+                             ("eval_success_reverse", "s--", "reverse")):
+      if evaluated.any():
+        axes[2].plot(x[evaluated], col(key)[evaluated], style, color=colour, ms=4,
+                     label=f"{name} ({label})" if len(members) > 1 else name)
+    if evaluated.any():
+      axes[3].plot(x[evaluated], col("eval_mae_m")[evaluated], "o-", color=colour, ms=4,
+                   label=label)
+    learned = col("critic_loss") > 0  # 0 before learning starts: not a loss
+    for ax, key in ((axes[4], "critic_loss"), (axes[5], "actor_loss")):
+      y = np.where(learned, col(key), np.nan)
+      ax.plot(x, y, color=colour, label=label)
+    if s == members[0]:
+      twin = axes[0].twinx()
+      twin.plot(x, col("eps"), ":", color="0.4", label="epsilon")
+      twin.plot(x, col("alpha") / max(np.nanmax(col("alpha")), 1e-12), "-.", color="0.6",
+                label="alpha / max")
+      twin.set_ylim(0, 1.05)
+      twin.set_ylabel("epsilon, alpha / max alpha")
+      twin.legend(loc="lower right", fontsize=7)
+  titles = [("training episodes (with exploration): return", "episode return"),
+            ("training episodes (with exploration): success", "success rate"),
+            ("deterministic policy, fresh starts: success", "success rate"),
+            ("deterministic policy, fresh starts: lateral MAE", "MAE (m)"),
+            ("critic loss (once learning)", "loss"), ("actor loss (once learning)", "loss")]
+  for ax, (title, ylabel) in zip(axes, titles):
+    ax.set_title(title, fontsize=10)
     ax.set_xlabel("env steps")
-  axes[2].set_yscale("log")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+  for ax in (axes[1], axes[2]):
+    ax.set_ylim(-0.03, 1.03)
+  axes[4].set_yscale("log")
+  if axes[2].lines:
+    axes[2].legend(fontsize=7)
   if len(members) > 1:
-    axes[0].legend(fontsize=7)
+    axes[0].legend(fontsize=7, loc="upper left")
   fig.tight_layout()
-  fig.savefig(run_dir / "learning_curve.png", dpi=110)
+  fig.savefig(run_dir / "learning_curve.png", dpi=100)
   plt.close(fig)
 
 
@@ -363,57 +501,115 @@ def init_members(cfg: Config, init_fn, members: list[dict]):
                                                                   ts.learner)))
 
 
+def _say(quiet: bool):
+  return (lambda *a, **k: None) if quiet else functools.partial(print, file=sys.stderr,
+                                                                 flush=True)
+
+
+def _score(scores: dict) -> tuple:
+  """Order of evaluations for the best checkpoint: the weaker direction's success, then
+  the lower MAE."""
+  return (min(scores["eval_success_forward"], scores["eval_success_reverse"]),
+          -scores["eval_mae_m"])
+
+
+def _last_row(run_dir: Path) -> dict:
+  lines = (run_dir / "metrics.jsonl").read_text().splitlines() \
+      if (run_dir / "metrics.jsonl").is_file() else []
+  return json.loads(lines[-1]) if lines else {}
+
+
 def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: bool = True,
           quiet: bool = False, env=None) -> dict:
   """Trains (or resumes) a run; returns the final log row of member 0. Trains
   `train.num_seeds` seeds times the `train.sweep` grid at once (vmap). `env` defaults to
   the config's vineyard pool; another env (a `BraxAdapter`) trains the same way, without
-  the vineyard evaluation at the end."""
+  the vineyard evaluations.
+
+  With the vineyard env, every `train.eval_every_chunks` chunks and at the end (with
+  `evaluate_at_end` or eval_every_chunks > 0) the deterministic policy drives
+  `train.eval_starts` fresh starts per direction (`mjxvine.starts`); the best of these
+  evaluations (member 0) is kept as checkpoints/best, and the closing report
+  (`evaluate_at_end`) evaluates that policy on the test world.
+  """
+  say = _say(quiet)
   run_dir.mkdir(parents=True, exist_ok=True)
   (run_dir / "config.yaml").write_text(to_yaml(cfg))
   members = sweep_members(cfg)
   seeds = len(members)
+  vineyard = env is None
+  if vineyard:
+    env = _default_env(_compile_key(cfg))
   sac, init_fn, chunk_fn = compiled_trainer(cfg, seeds, env)
-  evaluate_at_end = evaluate_at_end and env is None
   ts = init_members(cfg, init_fn, members)
   nbytes = sac_lib.buffer_nbytes(ts.buffer)
   ckpt = Checkpoints(run_dir, cfg.train.save_replay)
+  steps_per_chunk = cfg.env.num_envs * cfg.train.iters_per_chunk
+  total_chunks = math.ceil(cfg.train.total_env_steps / steps_per_chunk)
   chunk_index = 0
   if resume:
     restored = ckpt.restore(ts)
+    tell = _say(False)  # what a resume found is said even when quiet
     if restored is None:
-      print(f"no usable checkpoint in {run_dir}; starting afresh", file=sys.stderr)
+      tell(f"no usable checkpoint in {run_dir}; starting afresh")
     else:
       chunk_index, ts = restored
-      print(f"resumed {run_dir} at chunk {chunk_index} "
-            f"({int(np.max(ts.env_steps))} env steps)", file=sys.stderr)
-  steps_per_chunk = cfg.env.num_envs * cfg.train.iters_per_chunk
-  total_chunks = math.ceil(cfg.train.total_env_steps / steps_per_chunk)
-  if not quiet:
-    print(f"run {run_dir}: {seeds} seed(s) x {cfg.env.num_envs} envs, {total_chunks} chunks of "
-          f"{steps_per_chunk} env steps; replay {nbytes / 2**20:.1f} MiB per seed "
-          f"({nbytes / max(cfg.sac.buffer_size, 1):.0f} B/transition); device "
-          f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}",
-          file=sys.stderr)
+      if chunk_index >= total_chunks:
+        row = _last_row(run_dir)
+        tell(f"{run_dir} is complete: {int(np.max(ts.env_steps))} env steps of "
+            f"{cfg.train.total_env_steps}; raise train.total_env_steps to train on. "
+            f"Its last figures: {_summary_line(row, ckpt.best_scores())}")
+        return row
+      tell(f"resumed {run_dir} at chunk {chunk_index} ({int(np.max(ts.env_steps))} env steps)")
+  ts = ts.replace(budget=jp.full_like(ts.budget, cfg.train.total_env_steps))
+  say(f"run {run_dir}: {seeds} seed(s) x {cfg.env.num_envs} envs, {total_chunks} chunks of "
+      f"{steps_per_chunk} env steps; replay {nbytes / 2**20:.1f} MiB per seed "
+      f"({nbytes / max(cfg.sac.buffer_size, 1):.0f} B/transition); device "
+      f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}")
+  # The evaluations from fresh starts: every eval_every_chunks chunks and at the end, or
+  # only at the end when the closing report is asked for.
+  start_eval = (starts.make_start_eval(env, lambda p, obs, _: sac.act_deterministic(p, obs),
+                                       cfg.train.eval_starts, seeds)
+                if vineyard and (evaluate_at_end or cfg.train.eval_every_chunks) else None)
+  eval_key = jax.random.PRNGKey(cfg.train.seed + 1)  # the same starts at every evaluation
+
+  def evaluate_starts(ts) -> list[dict]:
+    """Evaluates every member; keeps member 0's policy if it is the best so far."""
+    t0 = time.time()
+    out = start_eval(ts.learner.actor_params, eval_key)
+    rows = [{f"eval_{k}": float(np.reshape(v, (-1,))[s]) for k, v in out.items()}
+            for s in range(seeds)]
+    best = ckpt.best_scores()
+    if best is None or _score(rows[0]) > _score(best):
+      ckpt.save_best(chunk_index, ts, {"env_steps": int(np.max(ts.env_steps)), **rows[0]})
+      rows[0]["best"] = True
+    say(f"evaluated {2 * cfg.train.eval_starts} fresh starts in {time.time() - t0:.0f} s: "
+        f"{_eval_line(rows[0])}" + (" (new best)" if rows[0].get("best") else ""))
+    return rows
+
   # Multi-host: every process runs the same program; process 0 writes logs and reports.
   primary = jax.process_index() == 0
   logger = Logger(run_dir, total_chunks * steps_per_chunk, chunk_index * steps_per_chunk,
                   enabled=primary)
-  last_row, t_compile, t_start = {}, None, time.time()
+  last_row, t_compile, t_start, evaluated = {}, None, time.time(), -1
+  every = cfg.train.eval_every_chunks
   try:
     while chunk_index < total_chunks:
       if cfg.train.max_minutes and time.time() - t_start > 60 * cfg.train.max_minutes:
-        print(f"train.max_minutes = {cfg.train.max_minutes} reached after chunk "
-              f"{chunk_index}: stopping", file=sys.stderr)
+        say(f"train.max_minutes = {cfg.train.max_minutes} reached after chunk "
+            f"{chunk_index}: stopping")
         if ckpt.manager.latest_step() != chunk_index:
           ckpt.save(chunk_index, ts)
         break
+      if t_compile is None:
+        say("compiling the training iteration (the first chunk includes it)...")
       t0 = time.time()
       ts, m = chunk_fn(ts)
       m = jax.device_get(m)
       dt = time.time() - t0
       if t_compile is None:
         t_compile = dt
+        say(f"first chunk done in {dt:.0f} s, compilation included")
       if not np.all(m["finite"]) or not all(np.all(np.isfinite(v)) for v in m.values()):
         bad = [k for k, v in m.items() if not np.all(np.isfinite(v))]
         raise NonFiniteError(
@@ -422,51 +618,94 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
             f"checkpoint is chunk {ckpt.manager.latest_step()} in {ckpt.dir}")
       chunk_index += 1
       host = jax.device_get((ts.env_steps, ts.episodes, ts.log_episodes, ts.log_return,
-                             ts.log_success))
+                             ts.log_success, ts.log_timeout, ts.log_speed))
+      evals = [{}] * seeds
+      if start_eval is not None and ((every and chunk_index % every == 0) or
+                                     chunk_index == total_chunks):
+        evals, evaluated = evaluate_starts(ts), chunk_index
       for s in range(seeds):
         get = (lambda x: np.reshape(x, (-1,))[s])
         eps_done = int(get(host[2]))
+        per_episode = lambda x: float(get(x) / eps_done) if eps_done else None
         row = {
             **members[s], "member": s,
             "chunk": chunk_index, "env_steps": int(get(host[0])),
             "episodes": int(get(host[1])),
-            "return_mean": float(get(host[3]) / eps_done) if eps_done else None,
-            "success_rate": float(get(host[4]) / eps_done) if eps_done else None,
+            "return_mean": per_episode(host[3]), "success_rate": per_episode(host[4]),
+            "timeout_rate": per_episode(host[5]), "v_mean": float(get(host[6])) / steps_per_chunk,
             "sps": steps_per_chunk / dt,
             "ups": cfg.train.iters_per_chunk * cfg.sac.grad_steps_per_iter / dt,
             "chunk_s": dt, "compile_s": t_compile,
             "wall": datetime.datetime.now().isoformat(timespec="seconds"),
+            **evals[s],
         }
         row.update({k: float(get(v)) for k, v in m.items() if k != "finite"})
         if s == 0:
           last_row = row
         logger.log(row)
-      ts = ts.replace(log_episodes=jp.zeros_like(ts.log_episodes),
-                      log_return=jp.zeros_like(ts.log_return),
-                      log_success=jp.zeros_like(ts.log_success))
+      ts = ts.reset_log()
       if chunk_index % cfg.train.checkpoint_every_chunks == 0 or chunk_index == total_chunks:
         ckpt.save(chunk_index, ts)
+    if start_eval is not None and evaluated != chunk_index and primary:
+      last_row.update(evaluate_starts(ts)[0])  # stopped early: evaluate the last policy
   finally:
     logger.close()
   if not primary:
     return last_row
   plot_learning_curve(run_dir)
-  if evaluate_at_end and cfg.eval.runs_after_train > 0:
+  best = ckpt.best_scores()
+  if best is not None:
+    last_row.update({f"best_{k}": v for k, v in best.items()})
+  if vineyard and evaluate_at_end:
+    _closing_report(cfg, run_dir, sac, ckpt, ts, seeds, best, last_row, say)
+  return last_row
+
+
+def _eval_line(scores: dict) -> str:
+  return (f"forward {scores['eval_success_forward']:.0%}, reverse "
+          f"{scores['eval_success_reverse']:.0%}, lateral MAE {scores['eval_mae_m']:.3f} m")
+
+
+def _summary_line(row: dict, best: dict | None) -> str:
+  text = (f"return {_f(row.get('return_mean'))}, training success "
+          f"{_f(row.get('success_rate'))} (with exploration)")
+  if best is not None:
+    text += f"; best checkpoint (chunk {best['chunk']}): {_eval_line(best)}"
+  return text
+
+
+def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seeds: int,
+                    best: dict | None, row: dict, say) -> None:
+  """Prints the best policy's evaluation on fresh starts of the training rows, evaluates it
+  on the test world (the paper's protocol, `eval.runs_after_train` runs per lane-direction,
+  for information) and names the files of the run."""
+  actor = ts.learner.actor_params
+  if best is not None:
+    restored = ckpt.restore(ts, best=True)
+    if restored is not None:
+      actor = restored[1].learner.actor_params
+    say(f"\nbest policy (chunk {best['chunk']}, {best['env_steps']} env steps) from "
+        f"{2 * cfg.train.eval_starts} fresh starts on the training rows: {_eval_line(best)}")
+  if seeds > 1:
+    actor = jax.tree.map(lambda x: x[0], actor)
+  runs = cfg.eval.runs_after_train
+  if runs > 0:
     from mjxvine import evaluate as ev
     from mjxvine.worlds import load_test_world
     world = load_test_world(cfg.world)
-    actor = jax.tree.map(lambda x: x[0], ts.learner.actor_params) if seeds > 1 else \
-        ts.learner.actor_params
-    doc = ev.evaluate(cfg, "checkpoint", world, runs=cfg.eval.runs_after_train,
-                      noise_factor=cfg.eval.noise_factor,
+    say(f"evaluating the best policy on the test world ({len(world.lanes) * 2 * runs} runs, "
+        f"the paper's protocol; for information)...")
+    doc = ev.evaluate(cfg, "checkpoint", world, runs=runs, noise_factor=cfg.eval.noise_factor,
                       policy=_actor_policy(sac, actor))
-    doc["policy"] = f"{run_dir} (seed 0)"
+    doc["policy"] = f"{run_dir} (best checkpoint, seed 0)"
     ev.write_results(doc, world, run_dir / "eval")
-    last_row["eval_success"] = doc["overall"]["success"]
-    last_row["eval_runs"] = doc["overall"]["runs"]
-    if not quiet:
-      print(ev.results_markdown(doc), file=sys.stderr)
-  return last_row
+    row["eval_test_success"] = doc["overall"]["success"]
+    row["eval_test_runs"] = doc["overall"]["runs"]
+    say(ev.results_markdown(doc))
+  say(f"wrote {run_dir}/: open learning_curve.png first" +
+      (", then eval/trajectories.png and eval/results.md" if runs > 0 else "") +
+      "; metrics.jsonl and tb/ (tensorboard --logdir) hold every chunk, checkpoints/ the "
+      "last and best policies (python -m mjxvine.export --checkpoint " + f"{run_dir})")
 
 
 def _actor_policy(sac, actor_params):
@@ -499,15 +738,18 @@ def main(argv=None) -> int:
   if args.resume:
     run_dir = Path(args.resume)
     resolved = run_dir / "config.yaml"
+    if not run_dir.is_dir():
+      p.error(f"--resume {run_dir}: no such run directory")
     if not resolved.is_file():
-      raise SystemExit(f"--resume {run_dir}: no config.yaml there (not a run directory)")
+      p.error(f"--resume {run_dir}: no config.yaml there (not a run directory)")
     old = load_config(resolved)
     cfg = config_from_args(argparse.Namespace(config=str(resolved), overrides=args.overrides))
     changed = [f"{s}.{k}" for s in ("world", "robot", "camera", "env", "sac", "train", "eval")
                for k, v in vars(getattr(cfg, s)).items() if getattr(getattr(old, s), k) != v]
-    if any(c not in ("train.total_env_steps", "train.max_minutes", "eval.runs_after_train")
-           for c in changed):
-      raise SystemExit(f"--resume: only train.total_env_steps may change, not {changed}")
+    free = ("train.total_env_steps", "train.max_minutes", "train.eval_every_chunks",
+            "eval.runs_after_train")
+    if any(c not in free for c in changed):
+      p.error(f"--resume: only {', '.join(free)} may change, not {changed}")
   else:
     if args.config is None and DEFAULT_CONFIG.is_file():
       args.config = str(DEFAULT_CONFIG)
@@ -517,17 +759,18 @@ def main(argv=None) -> int:
     cfg = config_from_args(args, extra)
     run_dir = Path(args.run_dir or f"runs/{datetime.datetime.now():%Y%m%d-%H%M%S}")
     if (run_dir / "checkpoints").exists():
-      raise SystemExit(f"{run_dir} already holds a run: use --resume {run_dir} or another "
-                       "--run-dir")
+      p.error(f"{run_dir} already holds a run: use --resume {run_dir} or another --run-dir")
   if args.resume and (args.seeds or args.sweep):
-    raise SystemExit("--resume: the seeds and sweep come from the run's config.yaml")
+    p.error("--resume: the seeds and sweep come from the run's config.yaml")
   try:
     row = train(cfg, run_dir, resume=bool(args.resume), evaluate_at_end=not args.no_eval)
   except NonFiniteError as e:
     print(f"error: {e}", file=sys.stderr)
     return 3
-  print(json.dumps({k: row.get(k) for k in ("env_steps", "episodes", "return_mean",
-                                            "success_rate", "sps", "eval_success")}))
+  print(json.dumps({k: row.get(k) for k in (
+      "env_steps", "episodes", "return_mean", "success_rate", "sps",
+      "best_eval_success_forward", "best_eval_success_reverse", "best_eval_mae_m",
+      "eval_test_success", "eval_test_runs")}))
   return 0
 
 

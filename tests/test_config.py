@@ -16,8 +16,10 @@ def test_defaults_are_the_spec():
 def test_yaml_and_overrides(tmp_path):
   path = tmp_path / "c.yaml"
   path.write_text("env:\n  num_envs: 8\nworld:\n  spacing_m: [0.8, 0.9]\n")
-  cfg = load_config(path, ["env.max_steps=50", "robot.name=husky", "sac.auto_alpha=true"])
+  cfg = load_config(path, ["env.max_steps=50", "robot.name=husky", "sac.auto_alpha=true",
+                           "sac.learning_rate=3e-4"])  # YAML 1.1 reads 3e-4 as a string
   assert cfg.env.num_envs == 8 and cfg.env.max_steps == 50
+  assert cfg.sac.learning_rate == 3e-4
   assert cfg.world.spacing_m == (0.8, 0.9)
   assert cfg.robot.name == "husky" and cfg.sac.auto_alpha is True
   # The resolved YAML loads back to the same config.

@@ -170,8 +170,15 @@ def test_bad_files(exported, tmp_path):
   with pytest.raises(err, match="no such policy file"):
     deploy.NumpyPolicy.load(tmp_path / "missing.npz")
   (tmp_path / "text.npz").write_text("not a zip")
-  with pytest.raises(err, match="not a readable"):
+  with pytest.raises(err, match=r"text.npz: not a valid policy file \(not an .npz archive\)"):
     deploy.NumpyPolicy.load(tmp_path / "text.npz")
+  (tmp_path / "cut.npz").write_bytes(src.read_bytes()[:-200])  # a truncated download
+  with pytest.raises(err, match="cut.npz: not a valid policy file"):
+    deploy.NumpyPolicy.load(tmp_path / "cut.npz")
+  # numpy's own error for these suggests allow_pickle=True: never for a policy file
+  np.savez(tmp_path / "objects.npz", a=np.array([{"x": 1}], dtype=object))
+  with pytest.raises(err, match=r"not a valid policy file \(holds pickled object arrays\)"):
+    deploy.NumpyPolicy.load(tmp_path / "objects.npz")
   with pytest.raises(err, match="format version 99"):
     deploy.NumpyPolicy.load(_rewrite(src, tmp_path / "v99.npz", meta_update={"format_version": 99}))
   with pytest.raises(err, match="lacks arrays: dense1/kernel"):
@@ -186,7 +193,7 @@ def test_bad_files(exported, tmp_path):
   assert issubclass(err, deploy.PolicyError) and issubclass(err, ValueError)
 
 
-def test_export_cli_from_orbax_checkpoint(exported, tmp_path):
+def test_export_cli_from_orbax_checkpoint(exported, tmp_path, capsys):
   """`python -m mjxvine.export --checkpoint RUN_DIR` restores the latest step's actor."""
   import orbax.checkpoint as ocp
 
@@ -203,8 +210,12 @@ def test_export_cli_from_orbax_checkpoint(exported, tmp_path):
   expected = np.asarray(flax_action(params, {"depth": depth, "state": state}))
   got = deploy.NumpyPolicy.load(tmp_path / "cli.npz").action(depth, state)
   np.testing.assert_allclose(got, expected, atol=1e-5)
-  with pytest.raises(SystemExit, match="no orbax checkpoint"):
-    export.main(["--checkpoint", str(tmp_path / "empty")])
+  (tmp_path / "empty").mkdir()
+  capsys.readouterr()
+  assert export.main(["--checkpoint", str(tmp_path / "empty")]) == 2
+  assert "no orbax checkpoint" in capsys.readouterr().err
+  assert export.main(["--checkpoint", str(tmp_path / "missing")]) == 2
+  assert capsys.readouterr().err == f"export error: no such run directory: {tmp_path / 'missing'}\n"
 
 
 def test_ros2_example_compiles(tmp_path):
@@ -225,3 +236,18 @@ def test_latency_numpy(exported, capsys):
   latency.main([str(exported[0]), "--calls", "3"])
   assert json.loads(capsys.readouterr().out)["calls"] == 3
   assert isinstance(deploy.set_blas_threads(1), bool)
+
+
+def test_yaw_input_follows_the_training_reference(exported):
+  """The default policy reads the yaw relative to the row entrance (wrapped); a policy
+  trained on the world yaw adds its offset; "start" without the entrance yaw is refused."""
+  path = exported[0]
+  policy = deploy.NumpyPolicy.load(path)
+  assert policy.meta["yaw_reference"] == "start"
+  assert policy.yaw_input(3.0, start_yaw=-3.0) == pytest.approx(6.0 - 2 * np.pi)
+  assert policy.yaw_input(0.25, start_yaw=0.25) == 0.0
+  with pytest.raises(deploy.PolicyInputError, match="start_yaw"):
+    policy.yaw_input(0.1)
+  arrays, meta = deploy.read_policy_file(path)
+  world = deploy.NumpyPolicy(arrays, dict(meta, yaw_reference="world", yaw_offset_deg=90.0))
+  assert world.yaw_input(np.pi) == pytest.approx(-np.pi / 2)

@@ -43,10 +43,10 @@ def test_observation_is_depth_and_state_only(env, fns):
   assert s.obs["depth"].shape == (N, 12, 16, 1) and s.obs["depth"].dtype == jp.float32
   assert s.obs["state"].shape == (N, 3)
   assert float(s.obs["depth"].min()) >= 0 and float(s.obs["depth"].max()) <= 5.0
-  # state = [v_prev, w_prev, yaw]: zero action before the first step, yaw of the pose
+  # state = [v_prev, w_prev, yaw]: zero action before the first step; the yaw is relative
+  # to the heading at the start (reset_to: no training jitter), so 0 in either direction
   np.testing.assert_allclose(s.obs["state"][:, :2], 0.0)
-  np.testing.assert_allclose(np.cos(s.obs["state"][:, 2]), np.cos(s.info["pose"]["yaw"]),
-                             atol=0.02)
+  np.testing.assert_allclose(s.obs["state"][:, 2], 0.0, atol=1e-3)
   # forward starts head +x, reverse ones -x
   np.testing.assert_allclose(np.cos(s.info["pose"]["yaw"]), [1, -1, 1, -1], atol=0.02)
   # two envs in different worlds see different vineyards
@@ -130,11 +130,12 @@ def test_nan_physics_resets_only_that_env(env, fns):
 
 
 def test_yaw_offset_and_start_directions():
-  """env.yaw_offset_deg shifts the yaw input (wrapped); start_directions=reverse draws
-  only -x starts, whose world yaw is near +-pi and observed yaw near -pi/2."""
+  """yaw_reference=world: env.yaw_offset_deg shifts the yaw input (wrapped);
+  start_directions=reverse draws only -x starts, whose world yaw is near +-pi and
+  observed yaw near -pi/2."""
   cfg = load_config("experiments/smoke.yaml", [
       "camera.width=16", "camera.height=12", "world.pool_size=1", "env.yaw_offset_deg=90",
-      "env.start_directions=reverse"])
+      "env.start_directions=reverse", "env.yaw_reference=world"])
   env = VineyardEnv(cfg)
   s = jax.jit(lambda k: env.reset_batch(k, 8))(jax.random.PRNGKey(3))
   assert np.all(np.asarray(s.info["pose"]["direction"]) == -1)
@@ -142,3 +143,26 @@ def test_yaw_offset_and_start_directions():
   observed = np.asarray(s.obs["state"][:, 2])
   np.testing.assert_allclose(np.cos(observed - world_yaw - np.pi / 2), 1.0, atol=1e-3)
   assert np.all(np.abs(observed + np.pi / 2) < np.deg2rad(15))
+
+
+def test_yaw_relative_to_the_episode_start():
+  """yaw_reference=start: the yaw input is the world yaw minus the heading at the episode
+  start plus a training jitter within +-yaw_reference_jitter_deg (drawn anew at every
+  episode start); the protocol's reset_to uses no jitter, so both directions start at 0."""
+  cfg = load_config("experiments/smoke.yaml", [
+      "camera.width=16", "camera.height=12", "world.pool_size=1",
+      "env.yaw_reference_jitter_deg=20"])
+  env = VineyardEnv(cfg)
+  s = jax.jit(lambda k: env.reset_batch(k, 64))(jax.random.PRNGKey(4))
+  directions = np.asarray(s.info["pose"]["direction"])
+  assert (directions > 0).any() and (directions < 0).any()
+  observed = np.asarray(s.obs["state"][:, 2])
+  assert np.all(np.abs(observed) <= np.deg2rad(20) + 1e-5)
+  assert np.std(observed) > np.deg2rad(5)  # jittered, not all zero
+  world = np.asarray(s.info["pose"]["yaw"])
+  ref = np.asarray(s.info["yaw_ref"])
+  np.testing.assert_allclose(np.cos(observed - (world - ref)), 1.0, atol=1e-4)
+  # the evaluation protocol's start: no jitter, either direction reads 0
+  start = jax.jit(lambda k, d: env.reset_to(k, 0, 1, d))
+  for d in (1.0, -1.0):
+    assert abs(float(start(jax.random.PRNGKey(0), d).obs["state"][2])) < 1e-3

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from mjxvine.config import load_config
+from mjxvine import evaluate
+from mjxvine.env import OUTCOMES
 from mjxvine.evaluate import distance_to_line, main as evaluate_main, trajectory_errors
 from mjxvine.worlds import generate_world
 
@@ -50,7 +52,13 @@ def test_oracle_drives_every_test_lane(tmp_path):
   assert [r["shape"] for r in doc["rows"]][::2] == ["straight", "straight", "hybrid", "curved",
                                                    "curved"]
   assert all(r["outcomes"] == ["success"] for r in doc["rows"])
-  assert "| 1F | straight |" in (out / "results.md").read_text()
+  assert all(r["metrics_status"] == "full" and r["lane_covered_frac"] == 1.0 for r in doc["rows"])
+  assert doc["rows"][0]["lane_covered_m"] == pytest.approx(8.0, abs=0.05)  # the lane's length
+  assert doc["overall"]["mae_m"] == doc["overall"]["mae_m_raw"]
+  md = (out / "results.md").read_text()
+  assert "| 1F | straight | 100% (8.0 m) |" in md and "lane covered" in md
+  table = [l for l in md.splitlines() if l.startswith("| ")]
+  assert len(table) == 12 and not any("n/a" in l or "(partial)" in l for l in table)
   assert (out / "trajectories.png").stat().st_size > 10_000
   # the world really is the requested one
   world = generate_world("test", 3, load_config(None, overrides).world)
@@ -63,3 +71,97 @@ def test_bad_policy_and_world_fail_in_one_line(tmp_path, capsys):
   assert "policy not found" in capsys.readouterr().err
   assert evaluate_main(["--policy", "oracle", "--world", "lane9", "--out", str(tmp_path)]) == 2
   assert "unknown world" in capsys.readouterr().err
+
+
+def test_lane_progress():
+  line = np.stack([np.linspace(0, 10, 41), 0.2 * np.sin(np.linspace(0, 3, 41))], -1)
+  length = evaluate.arc_length(line)
+  assert length > 10.0
+  fwd = line[:13]  # a forward run that stopped at x = 3
+  assert evaluate.lane_progress(fwd, line, "F") == pytest.approx(
+      evaluate.arc_length(line[:13]), abs=1e-9)
+  rev = line[::-1][:9]  # a reverse run from x = 10 to x = 8
+  assert evaluate.lane_progress(rev, line, "R") == pytest.approx(
+      evaluate.arc_length(line[-9:]), abs=1e-9)
+  # wobbling back does not lower the furthest point; outside the lane's ends clamps
+  assert evaluate.lane_progress(np.concatenate([fwd, fwd[:3]]), line, "F") == pytest.approx(
+      evaluate.lane_progress(fwd, line, "F"))
+  assert evaluate.lane_progress(np.array([[-1.0, 0.0], [12.0, 0.0]]), line, "F") == pytest.approx(
+      length)
+  straight = np.stack([np.linspace(0, 10, 41), np.zeros(41)], -1)  # off-centre: its projection
+  assert evaluate.lane_progress(np.array([[0.5, 0.4], [4.2, -0.3]]), straight, "F") == (
+      pytest.approx(4.2))
+  assert evaluate.lane_progress(np.array([[9.5, 0.4], [4.2, -0.3]]), straight, "R") == (
+      pytest.approx(5.8))
+  assert evaluate.lane_progress(np.zeros((0, 2)), line, "R") == 0.0
+
+
+def _row(outcomes, covered_frac, lane=1, direction="F"):
+  codes = [OUTCOMES.index(o) for o in outcomes]
+  errs = [np.full(10, 0.1) for _ in outcomes]
+  acts = [np.tile([0.4, 0.0], (10, 1)) for _ in outcomes]
+  row = evaluate._summary(errs, acts, codes, [10] * len(codes), 0.1,
+                          [24.0 * f for f in covered_frac], covered_frac)
+  row.update(lane=lane, direction=direction, shape="straight", outcomes=list(outcomes))
+  return row
+
+
+def _doc(rows, overall):
+  return {"policy": "p", "robot": "jackal", "noise": 1.0, "rows": rows, "overall": overall,
+          "wall_s": 1.0, "world": {}, "trajectories": []}
+
+
+def test_metrics_of_failed_runs_are_not_reported_as_comparable():
+  full = _row(["success", "success"], [1.0, 1.0])
+  partial = _row(["success", "collision"], [1.0, 0.25], direction="R")
+  none = _row(["collision", "timeout"], [0.1, 0.2], lane=2)
+  assert [r["metrics_status"] for r in (full, partial, none)] == ["full", "partial", "n/a"]
+  assert none["mae_m"] is None and none["rmse_m"] is None
+  assert none["mae_m_raw"] == pytest.approx(0.1) and none["rmse_m_raw"] == pytest.approx(0.1)
+  assert partial["mae_m"] == pytest.approx(0.1)
+  assert none["lane_covered_frac"] == pytest.approx(0.15)
+  assert none["lane_covered_m"] == pytest.approx(3.6)
+  overall = _row(["success"] * 3 + ["collision"] * 3, [1, 1, 1, 0.25, 0.1, 0.2])
+  md = evaluate.results_markdown(_doc([full, partial, none], overall))
+  lines = {l.split("|")[1].strip(): l for l in md.splitlines() if l.startswith("| ")}
+  assert "| 100% (24.0 m) | 0.100 (0.076) | 0.100 (0.089) |" in lines["1F"]
+  assert "| 62% (15.0 m) | 0.100 (partial) (0.131) | 0.100 (partial) (0.141) |" in lines["1R"]
+  assert "| 15% (3.6 m) | n/a (0.068) | n/a (0.076) |" in lines["2F"]
+  assert "0.100 (partial) (0.114)" in lines["overall"]
+  assert "lane covered" in lines["test row"]
+  assert evaluate.metrics_status(0, 0) == "n/a"
+  nothing = _row(["collision"], [0.05])
+  assert "MAE/RMSE n/a" in evaluate._title(_doc([nothing], nothing))
+
+
+def test_trajectories_figure(tmp_path):
+  """A figure of successful forward and failed reverse runs is written (whether it reads
+  well is checked by eye)."""
+  world = generate_world("test", 3, load_config(None, ["world.test_length_m=8"]).world)
+  trajs = []
+  for lane in world.lanes:
+    c = lane.centerline
+    for direction, outcome, part in (("F", "success", c), ("R", "collision", c[::-1][:12])):
+      trajs.append({"lane": lane.id, "direction": direction, "outcome": outcome,
+                    "xy": (part + [0.0, 0.1 if direction == "F" else -0.1]).tolist()})
+  overall = _row(["success"] * 5 + ["collision"] * 5, [1.0] * 5 + [0.3] * 5)
+  doc = dict(_doc([], overall), trajectories=trajs)
+  evaluate.plot_trajectories(doc, world, tmp_path / "t.png")
+  assert (tmp_path / "t.png").stat().st_size > 10_000
+  assert "(partial: only some runs reached the EoR)" in evaluate._title(doc)
+
+
+def test_bad_runs_noise_and_policy_file(tmp_path, capsys):
+  for flags, message in ((["--runs", "0"], "--runs 0: need at least 1 run"),
+                         (["--noise", "-1"], "--noise -1.0: the noise factor must be >= 0")):
+    with pytest.raises(SystemExit) as e:
+      evaluate_main(["--policy", "oracle", "--out", str(tmp_path), *flags])
+    assert e.value.code == 2 and message in capsys.readouterr().err
+  (tmp_path / "corrupt.npz").write_bytes(b"\x80\x04 not a policy at all" * 20)
+  assert evaluate_main(["--policy", str(tmp_path / "corrupt.npz"), "--out", str(tmp_path)]) == 2
+  err = capsys.readouterr().err
+  assert "corrupt.npz: not a valid policy file" in err and "allow_pickle" not in err
+  assert len(err.splitlines()) == 1
+  with pytest.raises(ValueError, match="runs=0"):
+    evaluate.evaluate(load_config(), "oracle", generate_world("test", 0, load_config().world),
+                      runs=0, noise_factor=1.0)

@@ -135,3 +135,46 @@ def test_log_prob_stable_for_saturated_tanh():
   lp = nw.squashed_log_prob(u, jnp.zeros((1, 2)), jnp.zeros((1, 2)), jnp.asarray(LOW),
                             jnp.asarray(HIGH))
   assert np.isfinite(np.asarray(lp)).all()
+
+
+def test_bfloat16_compute_tracks_float32():
+  """sac.compute_dtype=bfloat16: the same float32 parameters; the critic and actor losses
+  of a fixed batch within 3 % of float32's, their gradients pointing the same way (cosine
+  > 0.98) and float32 themselves."""
+  from mjxvine import sac
+  kw = dict(hidden=32, conv_features=8, depth_scale=0.2)
+  f32 = nw.make_networks([0.0, -1.0], [0.5, 1.0], **kw)
+  bf16 = nw.make_networks([0.0, -1.0], [0.5, 1.0], compute_dtype="bfloat16", **kw)
+  rng = np.random.default_rng(0)
+  b = 64
+  obs = lambda: {"depth": jnp.asarray(rng.uniform(0, 5, (b, 40, 40, 1)), jnp.float32),
+                 "state": jnp.asarray(rng.uniform(-1, 1, (b, 3)), jnp.float32)}
+  batch = sac.Transition(obs(), jnp.asarray(rng.uniform(0, 0.5, (b, 2)), jnp.float32),
+                         jnp.asarray(rng.normal(size=b), jnp.float32), jnp.zeros(b),
+                         jnp.zeros(b), obs())
+  actor, critic = nw.init_params(f32, jax.random.PRNGKey(0), batch.obs)
+  assert jax.tree.structure(actor) == jax.tree.structure(
+      nw.init_params(bf16, jax.random.PRNGKey(0), batch.obs)[0])
+  key, alpha = jax.random.PRNGKey(1), jnp.float32(0.2)
+
+  @jax.jit
+  def losses(actor, critic):
+    out = {}
+    for name, nets in (("f32", f32), ("bf16", bf16)):
+      (lq, _), gq = jax.value_and_grad(sac.critic_loss, has_aux=True)(
+          critic, critic, actor, alpha, batch, key, nets, 0.99)
+      (la, _), ga = jax.value_and_grad(sac.actor_loss, has_aux=True)(
+          actor, critic, alpha, batch, key, nets)
+      out[name] = (lq, la, gq, ga)
+    return out
+
+  out = losses(actor, critic)
+  flat = lambda t: jnp.concatenate([x.ravel() for x in jax.tree.leaves(t)])
+  for i in (0, 1):
+    assert out["bf16"][i].dtype == jnp.float32
+    assert float(out["bf16"][i]) == pytest.approx(float(out["f32"][i]), rel=0.03)
+  for i in (2, 3):
+    g32, g16 = flat(out["f32"][i]), flat(out["bf16"][i])
+    assert g16.dtype == jnp.float32
+    cos = float(g32 @ g16 / (jnp.linalg.norm(g32) * jnp.linalg.norm(g16)))
+    assert cos > 0.98, cos

@@ -281,15 +281,25 @@ def test_explore_action():
   assert abs(np.mean(np.any(mixed != np.asarray(policy), -1)) - 0.3) < 0.02
 
 
-def test_decay_eps():
-  eps = sac.decay_eps(jnp.array([1.0, 0.05, 0.5, 0.0504]), jnp.array([True, True, False, True]))
-  np.testing.assert_allclose(np.asarray(eps), [0.992, 0.05, 0.5, 0.05], rtol=1e-6)
-  e = jnp.ones(1)
-  for _ in range(1000):
-    e = sac.decay_eps(e, jnp.array([True]))
-  assert float(e[0]) == pytest.approx(0.05)
-  assert 0.992**100 == pytest.approx(float(
-      jax.lax.fori_loop(0, 100, lambda i, x: sac.decay_eps(x, True), jnp.float32(1.0))), rel=1e-5)
+def test_epsilon_schedule_is_global_over_envs():
+  """Epsilon follows the fraction of the env-step budget summed over all envs: a run of 1
+  env and one of 256 envs have the same epsilon at the same fraction, and the paper's
+  values (1.0 * 0.992 per episode of 1500) reach the 0.05 floor at 25 % of the budget."""
+  cfg = SACConfig()
+  total = 1_050_000
+  for n in (1, 256):
+    steps = np.arange(0, total + n, n * max(1, 4096 // n))  # the iterations' counters
+    eps = np.asarray(jax.vmap(lambda t: sac.epsilon(cfg, t, total))(jnp.asarray(steps)))
+    expect = np.maximum(0.992 ** (1500 * steps / total), 0.05)
+    np.testing.assert_allclose(eps, expect, rtol=1e-4)
+    assert eps[0] == pytest.approx(1.0) and eps[-1] == pytest.approx(0.05)
+    floor_at = steps[np.argmax(eps <= 0.05 + 1e-6)] / total
+    assert 0.24 < floor_at < 0.26, (n, floor_at)
+  # a custom budget in episodes: floor reached at the same fraction whatever the total
+  quick = SACConfig(eps_budget_episodes=150, eps_decay=0.9)
+  a = float(sac.epsilon(quick, 1_000, 10_000))
+  b = float(sac.epsilon(quick, 100_000, 1_000_000))
+  assert a == pytest.approx(b, rel=1e-5) and a == pytest.approx(0.9 ** 15, rel=1e-4)
 
 
 # ----------------------------------------------------------------------------------------
@@ -323,7 +333,7 @@ def _toy_return(policy, key):
 def _train_toy(seed, iterations=500):
   """Trains SAC on the toy task; returns (learned return, random-policy return)."""
   cfg = SACConfig(learning_rate=1e-3, gamma=0.9, alpha=0.02, batch_size=64, warmup_steps=100,
-                  eps_decay=0.9)
+                  eps_decay=0.9, eps_budget_episodes=iterations // T_TOY)
   nets = nw.make_networks([-1.0], [1.0], hidden=64)
   agent = sac.make_sac(nets, cfg)
   k_env, k_init, key = jax.random.split(jax.random.PRNGKey(seed), 3)
@@ -333,20 +343,20 @@ def _train_toy(seed, iterations=500):
   zeros = jnp.zeros(N_TOY)
 
   def iteration(carry, i):
-    obs, t, learner, buffer, eps, key = carry
+    obs, t, learner, buffer, key = carry
     key, k_act, k_explore, k_reset, k_update = jax.random.split(key, 5)
+    eps = sac.epsilon(cfg, i, iterations)
     action = sac.explore_action(k_explore, agent.act(learner.actor_params, obs, k_act), eps,
                                 nets.action_low, nets.action_high, i < cfg.warmup_steps)
     next_obs, t, reward, trunc = _toy_step(obs, t, action)
     buffer = sac.insert(buffer, sac.Transition(obs, action, reward, zeros, trunc, next_obs))
     learner = jax.lax.cond(i >= 1, lambda: agent.update_many(learner, buffer, k_update)[0],
                            lambda: learner)
-    eps = sac.decay_eps(eps, trunc, cfg.eps_decay, cfg.eps_min)
     reset_obs, _ = _toy_reset(k_reset)
     obs = jnp.where(trunc[:, None], reset_obs, next_obs)
-    return (obs, jnp.where(trunc, 0, t), learner, buffer, eps, key), None
+    return (obs, jnp.where(trunc, 0, t), learner, buffer, key), None
 
-  carry = (obs, t, learner, buffer, jnp.full(N_TOY, cfg.eps_start), key)
+  carry = (obs, t, learner, buffer, key)
   carry, _ = jax.jit(lambda c: jax.lax.scan(iteration, c, jnp.arange(iterations)))(carry)
   learner = carry[2]
   eval_key = jax.random.PRNGKey(123)

@@ -20,14 +20,19 @@ OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=2", "env.max_s
              "world.train_length_m=6", "eval.runs_after_train=0"]
 
 
-def _cfg(steps):
-  return load_config("experiments/smoke.yaml", OVERRIDES + [f"train.total_env_steps={steps}"])
+def _cfg(steps, *extra):
+  return load_config("experiments/smoke.yaml",
+                     OVERRIDES + [f"train.total_env_steps={steps}", *extra])
+
+
+# The first run also evaluates from 2 + 2 fresh starts every 2 chunks (best checkpoint).
+EVAL = ("train.eval_every_chunks=2", "train.eval_starts=2")
 
 
 @pytest.fixture(scope="module")
 def first_run(tmp_path_factory):
   run = tmp_path_factory.mktemp("run")
-  row = train_mod.train(_cfg(80), run, quiet=True, evaluate_at_end=False)
+  row = train_mod.train(_cfg(80, *EVAL), run, quiet=True, evaluate_at_end=False)
   return run, row
 
 
@@ -36,15 +41,27 @@ def test_run_writes_logs_checkpoints_and_curve(first_run):
   rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
   assert [r["env_steps"] for r in rows] == [20, 40, 60, 80]
   for key in ("episodes", "return_mean", "success_rate", "actor_loss", "critic_loss", "alpha",
-              "sps", "eps"):
+              "sps", "eps", "timeout_rate", "v_mean"):
     assert key in rows[-1]
+  assert 0 <= rows[-1]["v_mean"] <= 0.5
+  # evaluations at chunks 2 and 4, the best of them kept
+  assert ["eval_success_forward" in r for r in rows] == [False, True, False, True]
+  for key in ("eval_success_forward", "eval_success_reverse", "eval_mae_m"):
+    assert 0 <= rows[-1][key] <= 1.5
+  best = json.loads((run / "best.json").read_text())
+  assert best["chunk"] in (2, 4) and [int(p.name) for p in
+                                      (run / "checkpoints" / "best").iterdir()] == [best["chunk"]]
+  scores = [(min(r["eval_success_forward"], r["eval_success_reverse"]), -r["eval_mae_m"])
+            for r in rows if "eval_mae_m" in r]
+  assert best["chunk"] == 2 * (1 + scores.index(max(scores)))
+  assert row["best_eval_mae_m"] == pytest.approx(best["eval_mae_m"])
   # learning starts after the warm-up: losses are zero before, real after
   assert rows[0]["critic_loss"] == 0 and rows[-1]["critic_loss"] > 0
   assert rows[-1]["alpha"] == pytest.approx(0.2)
   assert list((run / "tb").glob("events.out.tfevents.*"))
   assert (run / "learning_curve.png").stat().st_size > 5000
   assert sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())[-1] == 4
-  assert load_config(run / "config.yaml") == _cfg(80)
+  assert load_config(run / "config.yaml") == _cfg(80, *EVAL)
 
 
 def test_resume_continues_and_survives_a_corrupt_checkpoint(first_run, tmp_path, capsys):
@@ -107,9 +124,21 @@ def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
   assert not (tmp_path / "nan" / "checkpoints" / "2").exists()
 
 
-def test_cli_refuses_bad_resume(tmp_path):
-  with pytest.raises(SystemExit, match="no config.yaml"):
-    train_mod.main(["--resume", str(tmp_path)])
+def test_cli_refuses_bad_resume(tmp_path, capsys):
+  for path, message in ((tmp_path, "no config.yaml"), (tmp_path / "nope", "no such run")):
+    with pytest.raises(SystemExit) as exit_info:
+      train_mod.main(["--resume", str(path)])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_resuming_a_finished_run_says_it_is_complete(first_run, monkeypatch, capsys):
+  """A relative run directory; nothing is trained again, the last figures are shown."""
+  run, _ = first_run
+  monkeypatch.chdir(run.parent)
+  assert train_mod.main(["--resume", run.name]) == 0
+  err = capsys.readouterr().err
+  assert "is complete" in err and "best checkpoint (chunk" in err
+  assert len((run / "metrics.jsonl").read_text().splitlines()) == 4
 
 
 def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):

@@ -2,6 +2,11 @@
 
   python -m mjxvine.worlds --kind test --seed 0 --robot jackal --out out/test0
   python -m mjxvine.worlds --kind train --seed 3 --out out/train3 --depth-at 2,0.9,0
+  python -m mjxvine.worlds --kind test --out out/test0 --depth-at 2,0,0 --policy policy.npz
+
+--depth-at also draws the robot and its camera frustum on the map (world.png). The depth
+image is rendered with the config's camera (--set camera.width=...), or with the image
+size, FOVs and max depth that a policy was trained with (--policy FILE.npz).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import mujoco
 import numpy as np
 
 from mjxvine.config import add_config_args, config_from_args
+from mjxvine.deploy import PolicyFormatError, read_policy_file
 from mjxvine.worlds.build import build_spec, terrain_height
 from mjxvine.worlds.plot import save_map
 from mjxvine.worlds.robots import ROBOTS
@@ -62,9 +68,33 @@ def write_depth(model, world, cfg, pose, out: Path) -> None:
     ax.set_title(title)
     ax.axis("off")
   fig.colorbar(im, ax=axes, label="z-depth [m]", shrink=0.8)
-  fig.suptitle(f"camera at x={pose[0]:.2f} y={pose[1]:.2f} yaw={pose[2]:.2f}")
+  fig.suptitle(f"camera at x={pose[0]:.2f} y={pose[1]:.2f} yaw={pose[2]:.2f}: "
+               f"{cfg.camera.height}x{cfg.camera.width} px, fovx {cfg.camera.fovx_deg:g} deg")
   fig.savefig(out / "depth.png", dpi=100)
   plt.close(fig)
+
+
+def camera_overrides(policy_file: str | Path) -> list[str]:
+  """`--set` overrides of the camera that a policy file was exported for: image size,
+  FOVs and max depth from its metadata (`mjxvine.deploy.read_policy_file`)."""
+  _, meta = read_policy_file(policy_file)
+  try:
+    height, width = (int(v) for v in meta["image_size"])
+  except (KeyError, TypeError, ValueError):
+    raise PolicyFormatError(f"{policy_file}: its metadata has no image_size [H, W]") from None
+  out = [f"camera.height={height}", f"camera.width={width}"]
+  for key in ("fovx_deg", "fovy_deg", "max_depth_m"):
+    if meta.get(key) is not None:
+      out.append(f"camera.{key}={meta[key]}")
+  return out
+
+
+def _parse_pose(text: str) -> list[float]:
+  """"X,Y,YAW" -> [x m, y m, yaw rad]; ValueError if not three finite numbers."""
+  pose = [float(v) for v in text.split(",")]
+  if len(pose) != 3 or not np.all(np.isfinite(pose)):
+    raise ValueError(text)
+  return pose
 
 
 def main(argv=None) -> int:
@@ -75,10 +105,27 @@ def main(argv=None) -> int:
   p.add_argument("--robot", choices=tuple(ROBOTS), default=None)
   p.add_argument("--out", required=True, help="output directory")
   p.add_argument("--depth-at", default=None, metavar="X,Y,YAW",
-                 help="also place the robot there (m, m, rad) and write its depth image")
+                 help="also place the robot there (m, m, rad), write its depth image and "
+                      "draw it with its camera frustum on the map")
+  p.add_argument("--policy", default=None, metavar="FILE.npz",
+                 help="use the camera of this exported policy (image size, FOVs, max depth "
+                      "from its metadata); --set camera.* still overrides it")
   add_config_args(p)
   args = p.parse_args(argv)
-  cfg = config_from_args(args, [f"robot.name={args.robot}"] if args.robot else [])
+  pose = None
+  if args.depth_at:
+    try:
+      pose = _parse_pose(args.depth_at)
+    except ValueError:
+      p.error(f"--depth-at {args.depth_at!r}: expected X,Y,YAW (three numbers)")
+  extra = [f"robot.name={args.robot}"] if args.robot else []
+  if args.policy:
+    try:
+      extra += camera_overrides(args.policy)
+    except PolicyFormatError as e:
+      print(f"error: {e}", file=sys.stderr)
+      return 2
+  cfg = config_from_args(args, extra)
   world = make_world(str(args.seed), cfg.world, kind=args.kind)
   out = Path(args.out)
   out.mkdir(parents=True, exist_ok=True)
@@ -86,18 +133,16 @@ def main(argv=None) -> int:
   model = spec.compile()
   (out / "world.xml").write_text(spec.to_xml())
   (out / "world.json").write_text(json.dumps(world.to_json(cfg.robot.name), indent=1))
-  save_map(world, out / "world.png")
+  save_map(world, out / "world.png", pose=pose, robot=ROBOTS[cfg.robot.name],
+           fovx_deg=cfg.camera.fovx_deg, max_depth_m=cfg.camera.max_depth_m)
   print(f"{args.kind} world seed {args.seed} ({cfg.robot.name}): {len(world.plant_xy)} plants, "
         f"{len(world.lanes)} lanes, inter-row {world.inter_row_m:.2f} m, spacing "
         f"{world.spacing_m:.2f} m -> {out}/world.xml, world.json, world.png")
-  if args.depth_at:
-    try:
-      pose = [float(v) for v in args.depth_at.split(",")]
-      assert len(pose) == 3
-    except (ValueError, AssertionError):
-      p.error(f"--depth-at {args.depth_at!r}: expected X,Y,YAW")
+  if pose is not None:
     write_depth(model, world, cfg, pose, out)
-    print(f"depth at {pose} -> {out}/depth.npy, depth_noisy.npy, camera.json, depth.png")
+    print(f"depth at {pose} ({cfg.camera.height}x{cfg.camera.width}, fovx "
+          f"{cfg.camera.fovx_deg:g} deg) -> {out}/depth.npy, depth_noisy.npy, camera.json, "
+          "depth.png")
   return 0
 
 
