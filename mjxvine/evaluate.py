@@ -30,7 +30,8 @@ import jax
 import jax.numpy as jp
 import numpy as np
 
-from mjxvine.config import Config, add_config_args, config_from_args, replace
+from mjxvine.config import (Config, add_config_args, config_from_args, enable_compile_cache,
+                            replace)
 # One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
 from mjxvine.deploy import PolicyError
 from mjxvine.env import OUTCOMES, SUCCESS, VineyardEnv, pure_pursuit
@@ -435,6 +436,7 @@ def main(argv=None) -> int:
   p.add_argument("--out", required=True)
   add_config_args(p)
   args = p.parse_args(argv)
+  enable_compile_cache()
   if args.runs is not None and args.runs < 1:
     p.error(f"--runs {args.runs}: need at least 1 run per lane and direction")
   if args.noise is not None and not args.noise >= 0:  # also NaN

@@ -19,6 +19,24 @@ import numpy as np
 from mjxvine.env import RUNNING, SUCCESS, TIMEOUT, VineyardEnv, lane_frame
 
 CHECK_EVERY = 10  # steps between host checks whether every episode has ended
+# The policies `with_baselines` drives: the actor's deterministic action, the constant
+# drive-straight action [v_max, 0], and uniform random actions.
+ACTOR, STRAIGHT, RANDOM = 0, 1, 2
+BASELINES = {"straight": STRAIGHT, "random": RANDOM}
+
+
+def with_baselines(act_deterministic: Callable, low: jax.Array, high: jax.Array) -> Callable:
+  """act(p, obs, key) for `make_start_eval` with p = {"actor": actor params, "policy":
+  ACTOR | STRAIGHT | RANDOM (int32)}: one compiled evaluation serves the trained policy and
+  the two baselines it must beat, from the same starts."""
+  def act(p, obs, key):
+    batch = obs["state"].shape[0]
+    actor = act_deterministic(p["actor"], obs)
+    straight = jp.broadcast_to(jp.stack([high[0], jp.zeros_like(high[1])]), (batch, 2))
+    uniform = jax.random.uniform(key, (batch, 2), minval=low, maxval=high)
+    return jp.select([p["policy"] == STRAIGHT, p["policy"] == RANDOM],
+                     [straight, uniform], actor)
+  return act
 
 
 def make_start_eval(env: VineyardEnv, act: Callable, starts: int, members: int = 1):

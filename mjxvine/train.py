@@ -38,8 +38,8 @@ from mjxvine import networks as nw
 from mjxvine import parallel
 from mjxvine import sac as sac_lib
 from mjxvine import starts
-from mjxvine.config import (Config, add_config_args, config_from_args, load_config,
-                            parse_sweep, replace, to_yaml)
+from mjxvine.config import (Config, add_config_args, config_from_args, enable_compile_cache,
+                            load_config, parse_sweep, replace, to_yaml)
 from mjxvine.env import PHYSICS, SUCCESS, TIMEOUT, VineyardEnv
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "default.yaml"
@@ -242,6 +242,28 @@ def _compiled(cfg: Config, seeds: int, env):
     return summarize_fn(ts, stacked)
 
   return sac, init_fn, host_chunk
+
+
+@functools.lru_cache(maxsize=4)
+def _start_evaluator(cfg: Config, seeds: int, env):
+  sac = compiled_trainer(cfg, seeds, env)[0]
+  act = starts.with_baselines(sac.act_deterministic, env.action_low, env.action_high)
+  return starts.make_start_eval(env, act, cfg.train.eval_starts, seeds)
+
+
+def start_evaluator(cfg: Config, seeds: int = 1):
+  """The evaluation from `train.eval_starts` fresh starts per direction of a run of `cfg`
+  (`mjxvine.starts`), compiled once per process: run(starts_params(actor params, policy,
+  seeds), key) -> dict; policy `starts.ACTOR`, or a baseline (`starts.BASELINES`)."""
+  key = _compile_key(cfg)
+  return _start_evaluator(replace(key, train={"eval_starts": cfg.train.eval_starts}), seeds,
+                          _default_env(key))
+
+
+def starts_params(actor_params, policy: int, seeds: int = 1) -> dict:
+  """The parameters of `start_evaluator`'s run: which policy, for every member."""
+  return {"actor": actor_params,
+          "policy": jp.full((seeds,) if seeds > 1 else (), policy, jp.int32)}
 
 
 def _compile_key(cfg: Config) -> Config:
@@ -568,15 +590,14 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
       f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}")
   # The evaluations from fresh starts: every eval_every_chunks chunks and at the end, or
   # only at the end when the closing report is asked for.
-  start_eval = (starts.make_start_eval(env, lambda p, obs, _: sac.act_deterministic(p, obs),
-                                       cfg.train.eval_starts, seeds)
+  start_eval = (start_evaluator(cfg, seeds)
                 if vineyard and (evaluate_at_end or cfg.train.eval_every_chunks) else None)
   eval_key = jax.random.PRNGKey(cfg.train.seed + 1)  # the same starts at every evaluation
 
   def evaluate_starts(ts) -> list[dict]:
     """Evaluates every member; keeps member 0's policy if it is the best so far."""
     t0 = time.time()
-    out = start_eval(ts.learner.actor_params, eval_key)
+    out = start_eval(starts_params(ts.learner.actor_params, starts.ACTOR, seeds), eval_key)
     rows = [{f"eval_{k}": float(np.reshape(v, (-1,))[s]) for k, v in out.items()}
             for s in range(seeds)]
     best = ckpt.best_scores()
@@ -657,7 +678,8 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   if best is not None:
     last_row.update({f"best_{k}": v for k, v in best.items()})
   if vineyard and evaluate_at_end:
-    _closing_report(cfg, run_dir, sac, ckpt, ts, seeds, best, last_row, say)
+    _closing_report(cfg, run_dir, sac, ckpt, ts, seeds, best, last_row, say, start_eval,
+                    eval_key)
   return last_row
 
 
@@ -675,10 +697,11 @@ def _summary_line(row: dict, best: dict | None) -> str:
 
 
 def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seeds: int,
-                    best: dict | None, row: dict, say) -> None:
-  """Prints the best policy's evaluation on fresh starts of the training rows, evaluates it
-  on the test world (the paper's protocol, `eval.runs_after_train` runs per lane-direction,
-  for information) and names the files of the run."""
+                    best: dict | None, row: dict, say, start_eval, eval_key) -> None:
+  """Prints the best policy's evaluation on fresh starts of the training rows beside the
+  drive-straight and random baselines from the same starts, evaluates it on the test world
+  (the paper's protocol, `eval.runs_after_train` runs per lane-direction, for
+  information) and names the files of the run."""
   actor = ts.learner.actor_params
   if best is not None:
     restored = ckpt.restore(ts, best=True)
@@ -686,6 +709,12 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
       actor = restored[1].learner.actor_params
     say(f"\nbest policy (chunk {best['chunk']}, {best['env_steps']} env steps) from "
         f"{2 * cfg.train.eval_starts} fresh starts on the training rows: {_eval_line(best)}")
+    for name, policy in starts.BASELINES.items():
+      out = start_eval(starts_params(actor, policy, seeds), eval_key)
+      scores = {f"eval_{k}": float(np.reshape(v, (-1,))[0]) for k, v in out.items()}
+      row.update({f"{name}_{k}": v for k, v in scores.items()})
+      say(f"  the same starts, {'driving straight' if name == 'straight' else name}: "
+          f"{_eval_line(scores)}")
   if seeds > 1:
     actor = jax.tree.map(lambda x: x[0], actor)
   runs = cfg.eval.runs_after_train
@@ -733,6 +762,7 @@ def main(argv=None) -> int:
                  "count and id from the cluster environment) and train over every host's "
                  "devices")
   args = p.parse_args(argv)
+  enable_compile_cache()
   if args.distributed:
     jax.distributed.initialize()
   if args.resume:

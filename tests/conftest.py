@@ -1,9 +1,18 @@
-"""Shared fixtures: tiny configs and compiled objects built once per session."""
+"""Shared fixtures: tiny configs and compiled objects built once per session.
+
+XLA's compiled programs are kept on disk (JAX's persistent compilation cache, in
+.pytest_cache/): tests and their subprocesses that compile the same program compile it
+once, and a second local run of the suite compiles little. The slow tests (marked
+`slow`: the learning run, 4 devices, the notebook) run with `pytest -m slow`."""
 
 import os
+from pathlib import Path
 
 # Keep XLA to what the CI machine has, and quiet.
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
+# Before jax is imported: subprocesses (notebook kernel, 4-device check) inherit it.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
+                      str(Path(__file__).resolve().parent.parent / ".pytest_cache" / "xla"))
 
 import pytest  # noqa: E402
 

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # minutes on 2 cores: `pytest -m slow` (CI runs it)
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
