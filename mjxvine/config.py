@@ -83,7 +83,10 @@ class EnvConfig:
   control_dt: float = _f(0.1, 0.01, 1.0, doc="seconds per action")
   physics_dt: float = _f(0.02, 0.001, 0.1, doc="MJX timestep; control_dt / physics_dt sub-steps")
   max_steps: int = _f(700, 1, 100000, doc="episode limit T (a truncation)")
-  v_max: float = _f(0.5, 0.01, 5.0, doc="linear speed box [0, v_max] m/s")
+  v_min: float = _f(0.0, 0.0, 5.0, doc="lowest commanded speed, m/s (0: the paper's box; "
+                    "> 0: the robot cannot stop in the row, so time-outs cannot be "
+                    "waited out)")
+  v_max: float = _f(0.5, 0.01, 5.0, doc="linear speed box [v_min, v_max] m/s")
   w_max: float = _f(1.0, 0.01, 10.0, doc="angular speed box [-w_max, w_max] rad/s")
   heading_weight: float = _f(0.6, 0.0, 1e3)
   progress_weight: float = _f(35.0, 0.0, 1e4)
@@ -178,6 +181,8 @@ class TrainConfig:
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
   runs: int = _f(5, 1, 1000, doc="runs per lane and direction")
+  max_steps: int = _f(700, 1, 100000, doc="episode limit T of the test-world protocol (the "
+                      "paper's 700), whatever env.max_steps training used")
   noise_factor: float = _f(1.0, 0.0, 100.0)
   runs_after_train: int = _f(1, 0, 1000)
 
@@ -271,6 +276,8 @@ def _check_cross_fields(cfg: Config) -> None:
   if cfg.world.trunk_height_m[1] >= cfg.world.canopy_top_m[0]:
     raise ConfigError(f"world.trunk_height_m = {list(cfg.world.trunk_height_m)}: "
                       f"must stay below world.canopy_top_m {list(cfg.world.canopy_top_m)}")
+  if cfg.env.v_min >= cfg.env.v_max:
+    raise ConfigError(f"env.v_min = {cfg.env.v_min}: must be < env.v_max = {cfg.env.v_max}")
   steps = cfg.env.control_dt / cfg.env.physics_dt
   if abs(steps - round(steps)) > 1e-6:
     raise ConfigError(f"env.physics_dt = {cfg.env.physics_dt}: must divide env.control_dt "
@@ -381,6 +388,11 @@ def enable_compile_cache() -> None:
   jax.config.update("jax_compilation_cache_dir", str(root / "mjxvine" / "xla"))
 
 
+def action_box(cfg: Config) -> tuple[list[float], list[float]]:
+  """The vineyard action box ([v_min, -w_max], [v_max, w_max]): [v m/s, w rad/s]."""
+  return [cfg.env.v_min, -cfg.env.w_max], [cfg.env.v_max, cfg.env.w_max]
+
+
 def replace(cfg: Config, **sections: dict) -> Config:
   """Returns `cfg` with fields of sections replaced, e.g. replace(cfg, env={"num_envs": 4})."""
   return dataclasses.replace(
@@ -391,5 +403,5 @@ __all__ = [
     "Config", "ConfigError", "WorldConfig", "RobotConfig", "CameraConfig", "EnvConfig",
     "SACConfig", "TrainConfig", "EvalConfig", "load_config", "to_dict", "to_yaml",
     "config_hash", "add_config_args", "config_from_args", "replace", "ROBOT_WIDTH_M",
-    "SWEEPABLE", "parse_sweep", "enable_compile_cache",
+    "SWEEPABLE", "parse_sweep", "enable_compile_cache", "action_box",
 ]

@@ -7,8 +7,9 @@ reads that world's fields, so N envs under `jax.vmap` drive in N different viney
 Observation: {"depth": (H, W, 1) float32 noisy z-depth in metres, "state": (3,)
 [v_prev m/s, w_prev rad/s, yaw rad]}. The yaw is relative to a reference (`env.yaw_reference`):
 the heading at the episode start plus a random training offset ("start", as a robot zeroes
-its IMU heading at the row entrance), or the world yaw ("world", the paper's input). Action: [v, w] in physical units, v in [0, v_max]
-m/s, w in [-w_max, w_max] rad/s. Pose, lane and End of Row (EoR) live in `info` only.
+its IMU heading at the row entrance), or the world yaw ("world", the paper's input).
+Action: [v, w] in physical units, v in [v_min, v_max] m/s (v_min 0 in the paper), w in
+[-w_max, w_max] rad/s. Pose, lane and End of Row (EoR) live in `info` only.
 
 `step` auto-resets a finished env: it starts again from its start pose, and every
 `pose_reset_every` episodes from a new random pose (random world, lane, point along the
@@ -29,7 +30,7 @@ from brax.envs.base import Env, State
 from mujoco import mjx
 
 from mjxvine import depth as depth_cam
-from mjxvine.config import Config
+from mjxvine.config import Config, action_box
 from mjxvine.worlds import (ROBOTS, Vineyard, batch_models, build_models, generate_world,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
@@ -103,8 +104,8 @@ class VineyardEnv(Env):
     self.lanes = LaneTable(self.worlds)
     self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds, cfg))
     self._nsub = int(round(cfg.env.control_dt / cfg.env.physics_dt))
-    self.action_low = jp.array([0.0, -cfg.env.w_max], jp.float32)
-    self.action_high = jp.array([cfg.env.v_max, cfg.env.w_max], jp.float32)
+    low, high = action_box(cfg)
+    self.action_low, self.action_high = jp.array(low, jp.float32), jp.array(high, jp.float32)
     data = mujoco.MjData(self.mj_model)
     mujoco.mj_forward(self.mj_model, data)
     self._data0 = mjx.put_data(self.mj_model, data)

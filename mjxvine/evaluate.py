@@ -158,7 +158,20 @@ def rollout(env: VineyardEnv, policy: Policy, lanes, directions, key, max_steps:
     out = (state.pipeline_state.qpos[:, :2], action, alive, state.info["outcome"])
     return (state, alive & (state.done == 0)), out
 
-  run = jax.jit(lambda c, k: jax.lax.scan(body, c, jax.random.split(k, CHUNK_STEPS)))
+  scan = jax.jit(lambda c, k: jax.lax.scan(body, c, jax.random.split(k, CHUNK_STEPS)))
+  step = jax.jit(body)
+
+  def run(carry, k):
+    if jax.default_backend() != "cpu":
+      return scan(carry, k)
+    # XLA:CPU runs convolutions inside a loop body slowly (jax-ml/jax#12868): the same
+    # steps, with the same keys, looped on the host
+    outs = []
+    for k_step in jax.random.split(k, CHUNK_STEPS):
+      carry, out = step(carry, k_step)
+      outs.append(out)
+    return carry, jax.tree.map(lambda *x: jp.stack(x), *outs)
+
   carry = (state, jp.ones(b, bool))
   xy, act, alive, outcome = [], [], [], np.zeros(b, np.int32)
   for t0 in range(0, max_steps, CHUNK_STEPS):
@@ -215,6 +228,8 @@ def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
     raise ValueError(f"runs={runs}: need at least 1 run per lane and direction")
   if noise_factor < 0:
     raise ValueError(f"noise factor {noise_factor}: must be >= 0")
+  # the protocol's episode limit, whatever the training episodes were
+  cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
   env = VineyardEnv(cfg, [world], noise_factor=noise_factor, auto_reset=False)
   name = policy_spec
   if policy is None:

@@ -57,7 +57,7 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
       "image_size": [cfg.camera.height, cfg.camera.width],
       "fovx_deg": cfg.camera.fovx_deg, "fovy_deg": cfg.camera.fovy_deg,
       "max_depth_m": cfg.camera.max_depth_m, "depth_scale": 1.0 / cfg.camera.max_depth_m,
-      "action_low": [0.0, -cfg.env.w_max], "action_high": [cfg.env.v_max, cfg.env.w_max],
+      "action_low": config_lib.action_box(cfg)[0], "action_high": config_lib.action_box(cfg)[1],
       "control_dt": cfg.env.control_dt, "config_hash": config_lib.config_hash(cfg),
       # the state's yaw: "start", the IMU yaw minus the yaw at the row entrance; "world",
       # the IMU yaw plus yaw_offset_deg (both wrapped to [-pi, pi)); NumpyPolicy.yaw_input
@@ -78,12 +78,11 @@ def actor_arrays(actor_params: Any, meta: dict) -> tuple[dict[str, np.ndarray], 
                      "not exportable to the depth policy format)")
   num_hidden = sum(1 for k in arrays if re.fullmatch(r"dense\d+/kernel", k))
   full = {
-      "format_version": FORMAT_VERSION, "mjxvine_version": mjxvine.__version__,
-      "state_layout": list(STATE_LAYOUT), "depth_scale": 1.0,
-      **{k: v for k, v in meta.items()},
+      "mjxvine_version": mjxvine.__version__, "state_layout": list(STATE_LAYOUT),
+      "depth_scale": 1.0, **meta,  # meta may set these, not the format below
+      "format_version": FORMAT_VERSION,
       "conv_layers": [[s, p] for s, p in CONV_LAYERS], "num_hidden": num_hidden,
   }
-  full["format_version"] = FORMAT_VERSION
   # numpy scalars/arrays in meta -> plain JSON values
   full = json.loads(json.dumps(full, default=lambda o: o.tolist() if hasattr(o, "tolist")
                                else str(o)))

@@ -29,6 +29,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from mjxvine.config import action_box
+
 Obs = Any  # a dict {"depth", "state"} or a flat vector, with leading batch dims
 
 # Layers of the conv tower: (stride, max-pool 2x2 after it), 3x3 kernels, VALID padding.
@@ -178,11 +180,11 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
 def make_networks_from_config(cfg) -> SACNetworks:
   """The vineyard networks of a `mjxvine.config.Config`.
 
-  Action box [0, v_max] x [-w_max, w_max]; depth scaled by 1 / camera.max_depth_m so
+  Action box `config.action_box`; depth scaled by 1 / camera.max_depth_m so
   that the tower sees [0, 1]; sizes and log-std bounds from `cfg.sac`.
   """
   return make_networks(
-      [0.0, -cfg.env.w_max], [cfg.env.v_max, cfg.env.w_max], hidden=cfg.sac.hidden,
+      *action_box(cfg), hidden=cfg.sac.hidden,
       conv_features=cfg.sac.conv_features, depth_scale=1.0 / cfg.camera.max_depth_m,
       log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
       compute_dtype=cfg.sac.compute_dtype)

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import optax
 
 from mjxvine import networks as nw
-from mjxvine.depth import dequantize_depth, quantize_depth  # noqa: F401 (re-exported)
+from mjxvine.depth import dequantize_depth, quantize_depth
 from mjxvine.config import SACConfig
 
 Params = Any

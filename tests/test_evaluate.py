@@ -38,7 +38,7 @@ def test_mae_rmse_of_synthetic_trajectories():
 def test_oracle_drives_every_test_lane(tmp_path):
   out = tmp_path / "oracle"
   overrides = ["world.test_length_m=8", "world.test_seed=3", "camera.width=16",
-               "camera.height=12", "env.max_steps=200"]
+               "camera.height=12", "eval.max_steps=200"]
   cfg_file = tmp_path / "c.yaml"
   cfg_file.write_text("")
   argv = ["--policy", "oracle", "--runs", "1", "--world", "3", "--out", str(out),

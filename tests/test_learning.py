@@ -1,8 +1,9 @@
-"""SAC learns the task in both travel directions: experiments/lanes.yaml as it is (4 m rows,
-starts with up to 25 deg of yaw and 0.3 m of lateral offset, 16,000 env steps; about 5
-minutes on 2 cores) ends with a best checkpoint whose deterministic policy, in EACH
-direction, reaches the end of the row from fresh starts far more often than a random
-policy and than driving straight from the same starts."""
+"""SAC learns the task in both travel directions: the default run (experiments/default.yaml
+as it is: 4 m rows, starts with up to 15 deg of yaw and 0.2 m of lateral offset, 12,000
+env steps; about 6 minutes on 2 cores, without its closing test-world evaluation) ends
+with a best checkpoint whose deterministic policy, in EACH direction, reaches the end of
+the row from fresh starts (others than those the best was chosen on) clearly more often
+than driving straight and than random actions from the same starts."""
 
 import jax
 import pytest
@@ -13,11 +14,12 @@ from mjxvine.config import load_config
 
 pytestmark = pytest.mark.slow  # minutes on 2 cores: `pytest -m slow` (CI runs it)
 
-MARGIN = 0.25
+MARGIN_STRAIGHT = 0.15  # driving straight solves about 50-70 % of these starts
+MARGIN_RANDOM = 0.4
 
 
 def test_sac_beats_random_and_straight_in_both_directions(tmp_path):
-  cfg = load_config("experiments/lanes.yaml")
+  cfg = load_config("experiments/default.yaml")
   row = train_mod.train(cfg, tmp_path, quiet=True, evaluate_at_end=False)
   assert row["env_steps"] == cfg.train.total_env_steps
   sac, init_fn, _ = train_mod.compiled_trainer(cfg)
@@ -31,5 +33,6 @@ def test_sac_beats_random_and_straight_in_both_directions(tmp_path):
     success[name] = (float(out["success_forward"]), float(out["success_reverse"]))
   for d, direction in enumerate(("forward", "reverse")):
     trained = success["trained"][d]
-    assert trained >= success["random"][d] + MARGIN, (direction, success)
-    assert trained >= success["straight"][d] + MARGIN, (direction, success)
+    assert trained >= success["random"][d] + MARGIN_RANDOM, (direction, success)
+    assert trained >= success["straight"][d] + MARGIN_STRAIGHT, (direction, success)
+    assert trained >= 0.7, (direction, success)

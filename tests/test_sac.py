@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mjxvine import depth
 from mjxvine import networks as nw
 from mjxvine import sac
 from mjxvine.config import SACConfig
@@ -167,11 +168,11 @@ def test_update_step(tiny):
 def test_quantisation_round_trip():
   d = jax.random.uniform(jax.random.PRNGKey(0), (10_000,), minval=0.0, maxval=5.0)
   for dtype, bound in ((jnp.uint16, 5.0 / (2 * 65535)), (jnp.uint8, 5.0 / (2 * 255))):
-    q = sac.quantize_depth(d, 5.0, dtype)
+    q = depth.quantize_depth(d, 5.0, dtype)
     assert q.dtype == dtype
-    err = np.abs(np.asarray(sac.dequantize_depth(q, 5.0)) - np.asarray(d))
+    err = np.abs(np.asarray(depth.dequantize_depth(q, 5.0)) - np.asarray(d))
     assert err.max() <= bound * 1.001 + 1e-6
-    edge = sac.dequantize_depth(sac.quantize_depth(jnp.array([-1.0, jnp.nan, 0.0, 5.0, 7.0]),
+    edge = depth.dequantize_depth(depth.quantize_depth(jnp.array([-1.0, jnp.nan, 0.0, 5.0, 7.0]),
                                                    5.0, dtype), 5.0)
     np.testing.assert_allclose(np.asarray(edge), [0.0, 0.0, 0.0, 5.0, 5.0])
 

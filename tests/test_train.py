@@ -150,7 +150,7 @@ def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   run, _ = first_run
   npz = tmp_path / "policy.npz"
   export.main(["--checkpoint", str(run), "--out", str(npz)])
-  cfg = load_config(run / "config.yaml", ["world.test_length_m=8", "env.max_steps=15"])
+  cfg = load_config(run / "config.yaml", ["world.test_length_m=8", "eval.max_steps=15"])
   world = generate_world("test", 0, cfg.world)
   env = VineyardEnv(cfg, [world], auto_reset=False)
   from_run = policies.load_actor_params(run, env)
