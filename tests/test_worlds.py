@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from mjxvine.config import load_config
 from mjxvine.worlds import (ROBOTS, batch_models, build_models, build_spec, generate_world,
                             load_test_world, take_world, terrain_height)
 from mjxvine.worlds.__main__ import main as worlds_main
