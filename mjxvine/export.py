@@ -53,11 +53,12 @@ def flatten_params(params: Any, prefix: str = "") -> dict[str, np.ndarray]:
 
 def meta_from_config(cfg: config_lib.Config) -> dict:
   """The metadata of a vineyard actor built by `networks.make_networks_from_config(cfg)`."""
+  low, high = config_lib.action_box(cfg)
   return {
       "image_size": [cfg.camera.height, cfg.camera.width],
       "fovx_deg": cfg.camera.fovx_deg, "fovy_deg": cfg.camera.fovy_deg,
       "max_depth_m": cfg.camera.max_depth_m, "depth_scale": 1.0 / cfg.camera.max_depth_m,
-      "action_low": config_lib.action_box(cfg)[0], "action_high": config_lib.action_box(cfg)[1],
+      "action_low": low, "action_high": high,
       "control_dt": cfg.env.control_dt, "config_hash": config_lib.config_hash(cfg),
       # the state's yaw: "start", the IMU yaw minus the yaw at the row entrance; "world",
       # the IMU yaw plus yaw_offset_deg (both wrapped to [-pi, pi)); NumpyPolicy.yaw_input

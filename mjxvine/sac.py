@@ -341,7 +341,8 @@ def init_buffer(obs: Obs, action_size: int, capacity: int, max_depth: float = 5.
       action=jnp.zeros((rows, n, action_size), jnp.float32),
       reward=jnp.zeros((rows, n), jnp.float32),
       terminal=jnp.zeros((rows, n), bool), truncated=jnp.zeros((rows, n), bool),
-      valid=jnp.zeros((rows, n), bool), final_ptr=jnp.zeros((), jnp.int32), rows_written=jnp.zeros((), jnp.int32),
+      valid=jnp.zeros((rows, n), bool), final_ptr=jnp.zeros((), jnp.int32),
+      rows_written=jnp.zeros((), jnp.int32),
       max_depth=float(max_depth), **kw)
 
 
@@ -369,7 +370,8 @@ def insert(buffer: ReplayBuffer, tr: Transition) -> ReplayBuffer:
       next_rest=jax.tree.map(setrow, buffer.next_rest, next_rest),
       action=setrow(buffer.action, tr.action), reward=setrow(buffer.reward, tr.reward),
       terminal=setrow(buffer.terminal, terminal), truncated=setrow(buffer.truncated, truncated),
-      valid=setrow(buffer.valid, jnp.ones_like(terminal) if tr.weight is None else tr.weight > 0),
+      valid=setrow(buffer.valid,
+                   jnp.ones_like(terminal) if tr.weight is None else tr.weight > 0),
       rows_written=buffer.rows_written + 1)
   if buffer.depth is not None:
     k = buffer.final_owner.shape[0]
