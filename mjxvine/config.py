@@ -114,6 +114,13 @@ class EnvConfig:
   heading_reward: str = _f("paper", choices=("paper", "speed_weighted"),
                            doc="r_h as in the paper, or scaled by the forward speed / v_max "
                            "(no heading reward for standing still facing the EoR)")
+  heading_target: str = _f("eor", choices=("eor", "lane"),
+                           doc="the point r_h's angle phi is measured to: the end of the row "
+                           "(the paper) or the centreline heading_lookahead_m ahead of the "
+                           "robot (pays for driving on the centreline, not only towards the "
+                           "EoR)")
+  heading_lookahead_m: float = _f(2.0, 0.1, 50.0, doc="heading_target=lane: distance along "
+                                  "the centreline from the robot's nearest point, m")
   start_directions: str = _f("both", choices=("both", "forward", "reverse"),
                              doc="travel directions of random starts (forward: +x, world "
                              "yaw near 0; reverse: yaw near +-pi, where the yaw input wraps)")

@@ -102,6 +102,7 @@ class VineyardEnv(Env):
     self.model, self.model_axes = batch_models(models)
     self.camera = depth_cam.DepthCamera.create(self.mj_model, cfg.camera)
     self.lanes = LaneTable(self.worlds)
+    self._sample_m = self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
     self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds, cfg))
     self._nsub = int(round(cfg.env.control_dt / cfg.env.physics_dt))
     low, high = action_box(cfg)
@@ -273,10 +274,15 @@ class VineyardEnv(Env):
 
     xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
     line = self.lanes.centerline[pose["world"], pose["lane"]]
-    _, tangent, lateral, _ = lane_frame(line, xy, pose["direction"])
+    nearest, tangent, lateral, _ = lane_frame(line, xy, pose["direction"])
     dist = jp.linalg.norm(xy - pose["eor"])
-    to_eor = pose["eor"] - xy
-    phi = _wrap(jp.arctan2(to_eor[1], to_eor[0]) - yaw)
+    target = pose["eor"]
+    if env.heading_target == "lane":  # a pure-pursuit point: phi = 0 only on the centreline
+      ahead = jp.round(env.heading_lookahead_m / self._sample_m).astype(jp.int32)
+      k = line.shape[0]
+      target = line[jp.clip(nearest + jp.where(pose["direction"] > 0, ahead, -ahead), 0, k - 1)]
+    to_target = target - xy
+    phi = _wrap(jp.arctan2(to_target[1], to_target[0]) - yaw)
     heading_err = _wrap(yaw - jp.arctan2(tangent[1], tangent[0]))
     half_lane = self.lanes.inter_row[pose["world"]] / 2
     # Past the end line: beyond the EoR along the lane's end tangent, inside the lane.

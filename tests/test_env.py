@@ -161,3 +161,36 @@ def test_yaw_relative_to_the_episode_start(env):
   world = np.asarray(s.info["pose"]["yaw"])
   ref = np.asarray(s.info["yaw_ref"])
   np.testing.assert_allclose(np.cos(observed - (world - ref)), 1.0, atol=1e-4)
+
+
+def test_heading_to_the_centreline_ahead_weighted_by_speed():
+  """heading_target=lane: r_h's angle is measured to the centreline heading_lookahead_m
+  ahead of the nearest point (so a robot beside the centreline, heading along the lane, is
+  paid less than one on it); speed_weighted scales r_h by forward speed / v_max."""
+  cfg = load_config("experiments/smoke.yaml", [
+      "camera.width=16", "camera.height=12", "world.pool_size=1", "env.heading_target=lane",
+      "env.heading_lookahead_m=2.0", "env.heading_reward=speed_weighted"])
+  env = VineyardEnv(cfg)
+  lateral = jp.array([0.0, 0.4, -0.4, 0.3])
+  s = jax.jit(jax.vmap(env.reset_to))(
+      jax.random.split(jax.random.PRNGKey(0), N), jp.zeros(N, jp.int32), jp.zeros(N, jp.int32),
+      jp.array([1.0, 1.0, -1.0, -1.0]), jp.full(N, 2.0), lateral, jp.zeros(N))
+  s2, _ = jax.jit(env.step_batch)(s, jp.tile(jp.array([[0.5, 0.0]]), (N, 1)))
+  d = s2.pipeline_state
+  xy, q = np.asarray(d.qpos[:, :2]), np.asarray(d.qpos[:, 3:7])
+  yaw = np.arctan2(2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2]**2 + q[:, 3]**2))
+  line = np.asarray(env.lanes.centerline[0, 0])
+  ahead = round(2.0 / (env.worlds[0].length_m / (len(line) - 1)))
+  direction = np.array([1, 1, -1, -1])
+  nearest = np.argmin(np.sum((line[None] - xy[:, None]) ** 2, -1), axis=1)
+  target = line[np.clip(nearest + direction * ahead, 0, len(line) - 1)]
+  phi = np.asarray(_wrap(np.arctan2(target[:, 1] - xy[:, 1], target[:, 0] - xy[:, 0]) - yaw))
+  v = np.sum(np.asarray(d.qvel[:, :2]) * np.stack([np.cos(yaw), np.sin(yaw)], 1), 1)
+  r_h = (1 - 2 * np.sqrt(np.abs(phi / np.pi))) * np.clip(v / 0.5, 0, 1)
+  eor = np.asarray(s.info["pose"]["eor"])
+  progress = (np.linalg.norm(np.asarray(s.pipeline_state.qpos[:, :2]) - eor, axis=1)
+              - np.linalg.norm(xy - eor, axis=1))
+  np.testing.assert_allclose(s2.reward, 0.6 * r_h + 35 * progress, rtol=1e-4, atol=1e-4)
+  # beside the centreline the target is off to the side (atan(0.4 / 2) = 0.2 rad on a
+  # straight row; the train rows wander a little), on it straight ahead
+  assert np.all(np.abs(phi[1:3]) > 0.08) and abs(phi[0]) < 0.03 and np.all(v > 0.05)
