@@ -158,28 +158,6 @@ def _vineyard(cfg: config_lib.Config, seed: int):
   return build_model(world, cfg), world
 
 
-def random_poses(model: mujoco.MjModel, world, n: int, seed: int = 0,
-                 tilt: float = 0.05) -> list[mujoco.MjData]:
-  """`n` host MjData with the robot along random lanes, either direction, small roll and
-  pitch (rad), after `mj_forward` (no physics: the robot hovers at wheel height)."""
-  from mjxvine.worlds import ROBOTS, terrain_height  # pylint: disable=import-outside-toplevel
-  rng = np.random.default_rng(seed)
-  radius = max(r.wheel_radius for r in ROBOTS.values())
-  out = []
-  for i in range(n):
-    line = world.lanes[i % len(world.lanes)].centerline
-    x, y = line[rng.integers(len(line))]
-    yaw = rng.uniform(-0.4, 0.4) + (np.pi if i % 2 else 0.0)
-    d = mujoco.MjData(model)
-    quat = np.zeros(4)
-    mujoco.mju_euler2Quat(quat, np.array([*rng.uniform(-tilt, tilt, 2), yaw]), "xyz")
-    d.qpos[:3] = [x, y, float(terrain_height(world, x, y)) + radius + 0.02]
-    d.qpos[3:7] = quat
-    mujoco.mj_forward(model, d)
-    out.append(d)
-  return out
-
-
 # argparse types: a bad value is a usage error (exit status 2, one line), not a traceback
 # halfway through a benchmark. Lists stay text: the benchmarks split them.
 
@@ -233,7 +211,7 @@ def _depth_args(p: argparse.ArgumentParser) -> None:
 
 
 def bench_depth(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
-  from mjxvine import depth  # pylint: disable=import-outside-toplevel
+  from mjxvine import depth, worlds  # pylint: disable=import-outside-toplevel
   accel = jax.default_backend() != "cpu"
   batches = ([int(b) for b in args.batches.split(",")] if args.batches else
              [1, 16, 64, 256] + ([1024, 4096] if accel else []))
@@ -246,7 +224,7 @@ def bench_depth(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
     model, world = _vineyard(c, args.seed)
     cam = depth.DepthCamera.create(model, c.camera)
     mx = mjx.put_model(model)
-    pool = random_poses(model, world, 64, args.seed)
+    pool = worlds.random_poses(model, world, 64, args.seed)
     template = mjx.put_data(model, pool[0])
     fields = ("cam_xpos", "cam_xmat", "geom_xpos", "geom_xmat")
     stacked = {f: np.stack([getattr(dd, f) for dd in pool]) for f in fields}
@@ -338,26 +316,23 @@ def _env_args(p: argparse.ArgumentParser) -> None:
 
 
 def _env_setup(cfg, n: int):
-  from mjxvine.env import VineyardEnv  # pylint: disable=import-outside-toplevel
-  env = VineyardEnv(cfg)
+  from mjxvine.env import training_env  # pylint: disable=import-outside-toplevel
+  env = training_env(cfg)
   state = jax.jit(lambda k: env.reset_batch(k, n))(jax.random.PRNGKey(0))
   action = jp.tile(jp.array([[0.3, 0.1]], jp.float32), (n, 1))
   return env, state, action
 
 
 def bench_physics(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
-  """Env-steps/s of the batched MJX physics alone: one 0.1 s control step = the wheel
-  commands and control_dt / physics_dt `mjx.step`s, each env in its own pool world."""
-  from mjxvine.worlds import wheel_speeds  # pylint: disable=import-outside-toplevel
+  """Env-steps/s of the batched MJX physics alone: `VineyardEnv.physics` per control step
+  (the wheel commands, then control_dt / physics_dt `mjx.step`s), each env in its own
+  pool world."""
   rows = []
   for n in _sizes(args):
     env, state, action = _env_setup(cfg, n)
-    nsub = env._nsub  # pylint: disable=protected-access
 
     def one(d, world, a):
-      m = env.world_model(world)
-      d = d.replace(ctrl=jp.stack(wheel_speeds(a[0], a[1], env.robot)))
-      return jax.lax.fori_loop(0, nsub, lambda _, x: mjx.step(m, x), d)
+      return env.physics(env.world_model(world), d, a)
 
     def run(d, worlds, a):
       step = jax.vmap(one)
@@ -365,7 +340,8 @@ def bench_physics(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict
 
     t = time_call(jax.jit(run), state.pipeline_state, state.info["pose"]["world"], action)
     rate = n * args.steps / t["call_s"]
-    rows.append(dict(envs=n, substeps=nsub, env_steps_per_s=rate, compile_s=t["compile_s"],
+    rows.append(dict(envs=n, substeps=env.substeps, env_steps_per_s=rate,
+                     compile_s=t["compile_s"],
                      cpu_ms_per_env_step=1e3 * t["cpu_s"] / (n * args.steps)))
   if args.baseline:
     base = mujoco_loop_rate(env, seconds=2.0)
@@ -389,7 +365,7 @@ def mujoco_loop_rate(env, seconds: float = 2.0) -> float:
   while time.perf_counter() - start < seconds:
     for d in datas:
       d.ctrl[:] = ctrl
-      for _ in range(env._nsub):  # pylint: disable=protected-access
+      for _ in range(env.substeps):
         mujoco.mj_step(model, d)
       steps += 1
   return steps / (time.perf_counter() - start)
@@ -521,11 +497,14 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   from brax import envs as brax_envs  # pylint: disable=import-outside-toplevel
   from brax.training.acting import Evaluator  # pylint: disable=import-outside-toplevel
   from brax.training.agents.sac import train as brax_sac  # pylint: disable=import-outside-toplevel
-  from mjxvine import brax_adapter  # pylint: disable=import-outside-toplevel
+  from mjxvine import wrappers  # pylint: disable=import-outside-toplevel
+  from mjxvine.env import VectorObsEnv  # pylint: disable=import-outside-toplevel
+  from mjxvine import checkpoint  # pylint: disable=import-outside-toplevel
+  from mjxvine import policies  # pylint: disable=import-outside-toplevel
   from mjxvine import train as train_lib  # pylint: disable=import-outside-toplevel
 
   pool = tuple(int(x) for x in args.pool.split("x"))
-  venv = brax_adapter.VectorObsEnv(cfg, pool)
+  venv = VectorObsEnv(cfg, pool)
   c, length, n = cfg.sac, cfg.env.max_steps, cfg.env.num_envs
   per_eval = args.steps // args.evals
   rows: list[dict] = []
@@ -547,16 +526,16 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
         max_replay_size=c.buffer_size, grad_updates_per_step=c.grad_steps_per_iter,
         deterministic_eval=True, progress_fn=progress)
 
-  # mjxvine: the same setting through BraxAdapter, evaluated by the same Evaluator.
+  # mjxvine: the same setting through wrappers.brax_env, evaluated by the same Evaluator.
   ours = config_lib.replace(
       cfg, sac={"auto_alpha": True, "alpha": 1.0, "target_entropy": -1.0, "eps_start": 0.0,
                 "eps_min": 0.0},
       train={"iters_per_chunk": max(1, per_eval // n // 4)})
-  adapter = brax_adapter.BraxAdapter(venv, length)
+  adapter = wrappers.brax_env(venv, length)
   sac, _, _ = train_lib.compiled_trainer(ours, env=adapter)
   evaluator = Evaluator(
       brax_envs.training.wrap(venv, episode_length=length),
-      lambda params: (lambda obs, key: (sac.act_deterministic(params, obs), {})),
+      lambda params: policies.actor_policy(sac.nets, params, brax=True),
       num_eval_envs=args.eval_envs, episode_length=length, action_repeat=1,
       key=jax.random.PRNGKey(cfg.train.seed + 1))
   run = Path(tempfile.mkdtemp(prefix="bench-brax-"))
@@ -570,7 +549,7 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
       train_lib.train(config_lib.replace(ours, train={"total_env_steps": steps}), run,
                       resume=k > 1, evaluate_at_end=False, quiet=True, env=adapter)
     train_s += time.perf_counter() - t
-    restored = train_lib.Checkpoints(run, False).restore(template) if k else None
+    restored = checkpoint.Checkpoints(run, False).restore(template) if k else None
     state = restored[1] if restored else template
     m = evaluator.run_evaluation(state.learner.actor_params, training_metrics={})
     rows.append(dict(learner="mjxvine.sac", env_steps=int(state.env_steps), train_s=train_s,
@@ -675,7 +654,8 @@ def bench_deploy(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
           flags = ["--threads", str(n)] + ([] if spin else ["--no-spinning"])
           rows.append(dict(impl=f"onnxruntime {version}", threads=n, spinning=spin, **common,
                            **latency(onnx_path, 1, *flags), max_abs_diff_vs_numpy=diff))
-  # Actor inference per decision on the robot CPUs in the paper (SPEC section 7), ms.
+  # Actor inference per decision on the paper's robot CPUs (docs/design.md, Evaluation
+  # protocol), ms.
   paper = {"TF (paper, robot CPU)": (2.8, 6.2), "TFLite (paper, robot CPU)": (0.63, 1.96)}
   for name, (low, high) in paper.items():
     rows.append(dict(impl=name, image="112x112", paper_low_ms=low, paper_high_ms=high))
@@ -711,7 +691,7 @@ def main(argv: list[str] | None = None) -> int:
   p = sub.add_parser("all", help="every sub-command with its defaults; one bench.json")
   p.add_argument("--out", default="bench.json", help="the combined JSON file")
   p.add_argument("--quick", action="store_true",
-                 help="small sizes (CPU smoke: env counts 1,16; batch 32; 48x48 trainer)")
+                 help="small sizes (a CPU smoke run: 4 envs, 40x40 images, batch 32)")
   args = parser.parse_args(argv)
   if args.command == "all":
     return run_all(args.out, args.quick)
@@ -731,13 +711,20 @@ def _rows_and_extra(result) -> tuple[list[dict], dict]:
 def run_all(out: str, quick: bool = False) -> int:
   """Runs every sub-command with its default arguments (`quick`: small sizes) and writes
   one JSON: {"environment": ..., "<command>": {"rows": [...], ...}}."""
-  quick_args = {"physics": ["--sizes", "1,16"], "env": ["--sizes", "1,16"],
-                "depth": ["--batches", "1,16", "--sizes", "48x48", "--baseline-batch", "1"], "update": ["--batch-sizes", "32"],
-                "deploy": ["--calls", "100"], "brax": ["--steps", "2000", "--evals", "2"],
-                "train": ["--set", "camera.width=48", "--set", "camera.height=48",
-                          "--set", "env.num_envs=8", "--set", "sac.batch_size=32",
-                          "--set", "sac.buffer_size=4096", "--set", "sac.grad_steps_per_iter=1",
-                          "--sizes", "8", "--iters", "4"]}
+  # Quick: one small size each, 40x40 images (as experiments/default.yaml; the conv tower
+  # needs 33x33) and two pool worlds. On a CPU the time goes mostly to XLA compilation.
+  small = ["--set", "camera.width=40", "--set", "camera.height=40", "--set", "world.pool_size=2"]
+  quick_args = {
+      "depth": ["--batches", "1,4", "--sizes", "40x40", "--baseline-batch", "1",
+                "--min-time", "0.2"],
+      "physics": ["--sizes", "4", "--steps", "2", *small],
+      "env": ["--sizes", "4", "--steps", "2", *small],
+      "deploy": ["--calls", "100", "--threads", "1", *small],
+      "update": ["--batch-sizes", "32", *small],
+      "train": ["--sizes", "4", "--iters", "2", *small, "--set", "sac.batch_size=16",
+                "--set", "sac.buffer_size=1024", "--set", "sac.grad_steps_per_iter=1"],
+      "brax": ["--steps", "2000", "--evals", "1", "--eval-envs", "16"],
+  }
   doc = {"environment": environment()}
   for name, (run, add_args, _) in COMMANDS.items():
     p = argparse.ArgumentParser()

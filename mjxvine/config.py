@@ -2,7 +2,7 @@
 
 Every field carries its allowed range (or choices) in its metadata; `load_config`
 rejects unknown keys, wrong types and out-of-range values with one line naming the
-key. Defaults are the values of `../shared/spec/SPEC.md` (the paper's setting).
+key. Defaults are the paper's setting (docs/design.md).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def _f(default, lo=None, hi=None, choices=None, doc=""):
 
 @dataclasses.dataclass(frozen=True)
 class WorldConfig:
-  """Procedural vineyards (SPEC section 2). Lengths in metres."""
+  """Procedural vineyards (docs/design.md, World layout). Lengths in metres."""
   inter_row_m: tuple[float, float] = _f((1.5, 2.0), 0.3, 10.0, doc="inter-row distance range")
   spacing_m: tuple[float, float] = _f((0.7, 1.0), 0.2, 5.0, doc="in-row plant spacing range")
   jitter_frac: float = _f(0.1, 0.0, 0.5, doc="plant position jitter, fraction of spacing (triangular)")
@@ -55,9 +55,43 @@ class WorldConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class RobotSpec:
+  """A robot's fixed geometry and masses (docs/design.md, Robots): metres, kg.
+
+  The table lives here, not in `mjxvine.worlds`, because config validation needs the
+  widths and `mjxvine.worlds` imports this module; `mjxvine.worlds.robots` re-exports it.
+  """
+  name: str
+  length: float        # footprint L (x)
+  width: float         # footprint W (y)
+  height: float        # H, ground to top
+  chassis_mass: float
+  wheel_mass: float
+  wheel_radius: float
+  track: float         # distance between left and right wheel centres
+  wheelbase: float     # distance between front and rear axles
+  camera_ahead: float  # camera optical centre ahead of the base centre
+  camera_height: float  # camera optical centre above the ground
+  track_slip: float    # skid-steer expanded-track factor chi: w = (v_r - v_l) / (chi * track)
+
+  @property
+  def mass(self) -> float:
+    return self.chassis_mass + 4 * self.wheel_mass
+
+
+ROBOTS = {
+    "jackal": RobotSpec("jackal", 0.508, 0.430, 0.250, 16.5, 0.477, 0.098, 0.376, 0.262,
+                        0.21, 0.26, 1.8),
+    "husky": RobotSpec("husky", 0.990, 0.670, 0.390, 46.0, 2.64, 0.1651, 0.571, 0.512,
+                       0.445, 0.40, 3.5),
+}
+ROBOT_NAMES = tuple(ROBOTS)  # ("jackal", "husky"): config choices, evaluation sweeps
+
+
+@dataclasses.dataclass(frozen=True)
 class RobotConfig:
-  """Which robot (SPEC section 3) and its drive."""
-  name: str = _f("jackal", choices=("jackal", "husky"))
+  """Which robot (docs/design.md, Robots) and its drive."""
+  name: str = _f("jackal", choices=ROBOT_NAMES)
   wheel_kv: float = _f(1.0, 0.001, 100.0, doc="wheel velocity-servo gain per kg of robot, N m s / rad / kg")
   wheel_armature: float = _f(0.005, 0.0, 1.0, doc="wheel motor armature per kg of robot, kg m^2 / kg")
   wheel_friction: float = _f(0.8, 0.05, 5.0)
@@ -65,7 +99,7 @@ class RobotConfig:
 
 @dataclasses.dataclass(frozen=True)
 class CameraConfig:
-  """Depth camera (SPEC section 4)."""
+  """Depth camera (docs/design.md, Camera and noise)."""
   width: int = _f(112, 1, 1024)
   height: int = _f(112, 1, 1024)
   fovx_deg: float = _f(60.0, 1.0, 170.0)
@@ -78,7 +112,8 @@ class CameraConfig:
 
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
-  """Task, reward and termination (SPEC sections 4-5)."""
+  """Task, reward and termination (docs/design.md, Observation and action; Reward and
+  terminations)."""
   num_envs: int = _f(1, 1, 1 << 20)
   control_dt: float = _f(0.1, 0.01, 1.0, doc="seconds per action")
   physics_dt: float = _f(0.02, 0.001, 0.1, doc="MJX timestep; control_dt / physics_dt sub-steps")
@@ -128,7 +163,7 @@ class EnvConfig:
 
 @dataclasses.dataclass(frozen=True)
 class SACConfig:
-  """Soft Actor-Critic (SPEC section 6)."""
+  """Soft Actor-Critic (docs/design.md, SAC hyper-parameters)."""
   learning_rate: float = _f(2e-4, 1e-7, 1.0)
   gamma: float = _f(0.99, 0.0, 1.0)
   tau: float = _f(5e-3, 0.0, 1.0)
@@ -157,6 +192,11 @@ class SACConfig:
                           doc="dtype the convs and hidden layers compute in (bfloat16: "
                           "mixed precision for accelerators; parameters, heads, losses and "
                           "optimiser states stay float32)")
+  reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
+                                    "features of obs from the critic loss and the critics "
+                                    "as they were before this step's update (as brax's SAC "
+                                    "does): 6 tower passes per gradient step instead of 8. "
+                                    "False: the actor loss re-runs the updated critics")
   reward_scale: float = _f(1.0, 1e-6, 1e6, doc="rewards are multiplied by this before the "
                            "replay (1: the paper; returns are logged unscaled)")
 
@@ -203,10 +243,6 @@ class Config:
   sac: SACConfig = SACConfig()
   train: TrainConfig = TrainConfig()
   eval: EvalConfig = EvalConfig()
-
-
-# Robot footprints (width, m), for the cross-field check that lanes fit the robot.
-ROBOT_WIDTH_M = {"jackal": 0.430, "husky": 0.670}
 
 
 def _coerce(key: str, value: Any, tp: Any, meta: dict) -> Any:
@@ -273,7 +309,7 @@ def _build(cls, data: dict, prefix: str):
 
 
 def _check_cross_fields(cfg: Config) -> None:
-  width = ROBOT_WIDTH_M[cfg.robot.name]
+  width = ROBOTS[cfg.robot.name].width
   lo = cfg.world.inter_row_m[0]
   if lo - cfg.world.canopy_width_m[1] <= width:
     raise ConfigError(
@@ -395,6 +431,11 @@ def enable_compile_cache() -> None:
   jax.config.update("jax_compilation_cache_dir", str(root / "mjxvine" / "xla"))
 
 
+def depth_input_scale(cfg: Config) -> float:
+  """The factor (1/m) the networks multiply depth by: [0, camera.max_depth_m] -> [0, 1]."""
+  return 1.0 / cfg.camera.max_depth_m
+
+
 def action_box(cfg: Config) -> tuple[list[float], list[float]]:
   """The vineyard action box ([v_min, -w_max], [v_max, w_max]): [v m/s, w rad/s]."""
   return [cfg.env.v_min, -cfg.env.w_max], [cfg.env.v_max, cfg.env.w_max]
@@ -409,6 +450,7 @@ def replace(cfg: Config, **sections: dict) -> Config:
 __all__ = [
     "Config", "ConfigError", "WorldConfig", "RobotConfig", "CameraConfig", "EnvConfig",
     "SACConfig", "TrainConfig", "EvalConfig", "load_config", "to_dict", "to_yaml",
-    "config_hash", "add_config_args", "config_from_args", "replace", "ROBOT_WIDTH_M",
-    "SWEEPABLE", "parse_sweep", "enable_compile_cache", "action_box",
+    "config_hash", "add_config_args", "config_from_args", "replace", "RobotSpec", "ROBOTS",
+    "ROBOT_NAMES", "SWEEPABLE", "parse_sweep", "enable_compile_cache", "action_box",
+    "depth_input_scale",
 ]

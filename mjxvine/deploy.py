@@ -7,12 +7,13 @@
 
 The action is the deterministic test-time action of SAC: the tanh-squashed mean mapped
 onto the action box. Files are written by `mjxvine.export.export_actor`. Each conv is
-an im2col (a strided view copied into a preallocated buffer) and a single matmul; about
-1 ms per 112x112 decision on one quiet core (`python -m mjxvine.latency policy.npz`).
-On a busy CPU use one BLAS thread: OPENBLAS_NUM_THREADS=1 set before numpy is imported,
-or `NumpyPolicy.load(path, blas_threads=1)` with threadpoolctl installed; two OpenBLAS
-threads on a loaded 2-core machine took 16 ms instead of 1.7 ms. Inputs are checked
-(shape, NaN/inf); errors are `PolicyInputError`, file problems `PolicyFormatError`.
+an im2col (a strided view copied into a preallocated buffer) and a single matmul;
+`python -m mjxvine.latency policy.npz` times one decision on the machine at hand
+(measured numbers are in docs/results/). On a busy CPU use one BLAS thread:
+OPENBLAS_NUM_THREADS=1 set before numpy is imported, or `NumpyPolicy.load(path,
+blas_threads=1)` with threadpoolctl installed: extra OpenBLAS threads that must wait for
+a core make each decision several times slower. Inputs are checked (shape, NaN/inf);
+errors are `PolicyInputError`, file problems `PolicyFormatError`.
 Calls are thread-safe (buffers are per thread).
 """
 

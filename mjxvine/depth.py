@@ -1,4 +1,5 @@
-"""The depth camera (SPEC section 4) as jit-compiled, vmappable JAX ray casting.
+"""The depth camera (docs/design.md, Camera and noise) as jit-compiled, vmappable JAX ray
+casting.
 
 `render_depth(cam, m, d)` renders the noise-free z-depth image (H, W) float32 in metres of
 ONE world: `m` an `mjx.Model` (its per-world fields may be slices of a batch, so the
@@ -7,7 +8,7 @@ or `mjx.step` (it reads `cam_xpos`, `cam_xmat`, `geom_xpos`, `geom_xmat`). Every
 static (geom ids, pixel rays, sizes of work arrays) lives in a `DepthCamera`, built once
 from the host `mujoco.MjModel` by `DepthCamera.create(mj_model, camera_cfg)`.
 `render_depth_batch` renders a batch in chunks (faster on CPU), `add_noise` applies the
-SPEC's noise, `reference_depth` is the same image by MuJoCo's C `mj_multiRay`.
+sensor noise model, `reference_depth` is the same image by MuJoCo's C `mj_multiRay`.
 
 Conventions
 - Pixel (r, c): r = 0 is the top row, c = 0 the leftmost column. Its ray passes through the
@@ -44,11 +45,11 @@ Algorithm (cost grows with what is in view, not with the vineyard's size)
    side walls are not modelled: they cannot be seen from above the terrain inside its
    footprint.
 
-Cost: about 0.6-0.9 CPU-ms per 112x112 image on a 2.8 GHz Xeon core (batches of 16-64),
-some 50-130x the naive `mjx.ray` over all pixels, which moreover skips cylinders and
-heightfields (`python -m mjxvine.bench depth`). XLA:CPU fuses aggressively, and several
-formulations below (written-out sums, a scan, a separate min over slots) are chosen to
-keep it from repeating gathers or fusing transposes into the per-pixel kernels.
+Speed: `python -m mjxvine.bench depth` times it against the naive `mjx.ray` over all
+pixels (which moreover skips cylinders and heightfields); measured numbers, with their
+machine, are in docs/results/. XLA:CPU fuses aggressively, and several formulations below
+(written-out sums, a scan, a separate min over slots) are chosen to keep it from
+repeating gathers or fusing transposes into the per-pixel kernels.
 
 Accuracy against `mujoco.mj_multiRay` (tests/test_depth.py): at least 99.5 % of pixels
 within 1 cm, and none off by more than 5 cm except at silhouette edges, defined as pixels
@@ -56,8 +57,9 @@ whose reference depth differs by more than 5 cm from one of their 4-neighbours (
 there may legitimately land on either side of a depth step; float32 and the finite terrain
 sampling move such pixels). The camera must be above the terrain, inside its footprint.
 
-Noise (`add_noise`, SPEC 4): `n1 = clip(N(0, sigma), +-clip)`, `n2 = clip(N(0, 1) d / 10,
-+-clip)`, image `clip(d + k (n1 + n2), 0, max_depth)`, per pixel, from an explicit key.
+Noise (`add_noise`, docs/design.md, Camera and noise): `n1 = clip(N(0, sigma), +-clip)`,
+`n2 = clip(N(0, 1) d / 10, +-clip)`, image `clip(d + k (n1 + n2), 0, max_depth)`, per pixel,
+from an explicit key.
 Storage: `quantize_depth` / `dequantize_depth` map [0, max_depth] to uint16 (or uint8)
 codes with a round-trip error of at most max_depth / 131070 (3.8e-5 m for 5 m).
 """
@@ -122,7 +124,7 @@ class DepthCamera:
              terrain_samples: int | None = None, terrain_refine: int = 1) -> "DepthCamera":
     """Collects what the camera named `camera` of the host `model` can see.
 
-    max_prims: primitives kept after view culling; default min(P, 64). A SPEC vineyard
+    max_prims: primitives kept after view culling; default min(P, 64). A default vineyard
       puts about 20 plants (40 primitives) in a 60 deg x 5 m view; `render_depth_info`
       reports `dropped` when more were in view.
     tile, tile_slots: pixels per tile (default about 1/7 of the height x 1/14 of the
@@ -475,8 +477,8 @@ def render_depth_batch(cam: DepthCamera, m: mjx.Model, d: mjx.Data, model_axes: 
   `worlds.batch_models`).
 
   Renders `chunk` images at a time (`lax.map`): on CPU this keeps XLA's intermediates
-  in cache (measured 0-20 % faster per image than one vmap over 64-256 images, on a
-  busy 2-core machine); chunk=None is one plain vmap (the choice on a GPU).
+  in cache, which measured faster per image than one vmap over large batches (`python -m
+  mjxvine.bench depth`); chunk=None is one plain vmap (the choice on a GPU).
   """
   if model_axes is None:
     model_axes = jax.tree.map(lambda _: None, m)
@@ -508,7 +510,8 @@ def _noise_params(cfg_or_params: Any) -> tuple[float, float, float, float]:
 
 def add_noise(depth: jax.Array, key: jax.Array, cfg_or_params: Any,
               noise_factor: float | jax.Array | None = None) -> jax.Array:
-  """SPEC 4 depth noise on a noise-free image `depth` (..., H, W) in metres.
+  """The sensor noise (docs/design.md, Camera and noise) on a noise-free image `depth`
+  (..., H, W) in metres.
 
   `clip(d + k (n1 + n2), 0, max_depth)` with `n1 = clip(N(0, sigma), +-clip)` and
   `n2 = clip(N(0, 1) d / 10, +-clip)`, independent per pixel. `cfg_or_params`: a

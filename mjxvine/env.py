@@ -1,4 +1,5 @@
-"""The vineyard-row task as a pure-functional, jit-compiled brax `Env` (SPEC sections 4-5).
+"""The vineyard-row task as a pure-functional, jit-compiled brax `Env` (docs/design.md,
+Observation and action; Reward and terminations).
 
 One `VineyardEnv` holds a pool of worlds batched into one `mjx.Model` (per-world fields with
 a leading axis, `in_axes`); every env carries the index of its world in its state and
@@ -11,11 +12,15 @@ its IMU heading at the row entrance), or the world yaw ("world", the paper's inp
 Action: [v, w] in physical units, v in [v_min, v_max] m/s (v_min 0 in the paper), w in
 [-w_max, w_max] rad/s. Pose, lane and End of Row (EoR) live in `info` only.
 
-`step` auto-resets a finished env: it starts again from its start pose, and every
-`pose_reset_every` episodes from a new random pose (random world, lane, point along the
-lane, direction, jitter). `done` marks the end of an episode; `info["truncation"]` is 1
-where it ended by time-out or a physics reset, so that learners bootstrap through those.
-The batched trainer path `step_batch` also returns each env's pre-reset observation.
+`step` advances one env by one control step and does not reset it (brax's convention):
+`done` marks the end of an episode, `info["truncation"]` is 1 where it ended by time-out or
+a physics reset (learners bootstrap through those), and `metrics` holds the step's outcome
+flags and its named reward terms ("reward/heading", "reward/progress", "reward/success",
+"reward/collision", "reward/reverse"; they sum to `reward`). `restart(state, new_start)`
+starts the next episode from the same start pose or a new random one (random world, lane,
+point along the lane, direction, jitter); `training_env(cfg)` is the batch of
+auto-resetting envs the trainer uses, a new pose every `env.pose_reset_every` episodes
+(`mjxvine.wrappers.AutoResetBatch`).
 """
 
 from __future__ import annotations
@@ -31,12 +36,13 @@ from mujoco import mjx
 
 from mjxvine import depth as depth_cam
 from mjxvine.config import Config, action_box
+from mjxvine.protocol import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
+                              REWARD_PREFIX, RUNNING, SUCCESS, TIMEOUT)
+from mjxvine.wrappers import AutoResetBatch
 from mjxvine.worlds import (ROBOTS, Vineyard, batch_models, build_models, generate_world,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
-# Outcome codes of an episode (info["outcome"], evaluation tables).
-RUNNING, SUCCESS, COLLISION, REVERSED, LEFT_LANE, TIMEOUT, PHYSICS = range(7)
-OUTCOMES = ("running", "success", "collision", "reversed", "left_lane", "timeout", "physics")
+REWARD_TERMS = ("heading", "progress", "success", "collision", "reverse")
 MAX_QVEL = 50.0  # beyond this (m/s or rad/s) the physics has exploded
 
 
@@ -87,7 +93,7 @@ class VineyardEnv(Env):
   """Batched vineyard-navigation environment over a pool of worlds (brax `Env`)."""
 
   def __init__(self, cfg: Config, worlds: Sequence[Vineyard] | None = None, *,
-               noise_factor: float | None = None, auto_reset: bool = True):
+               noise_factor: float | None = None):
     """`worlds` defaults to the config's pool of train worlds (seeds train_seed ...)."""
     if worlds is None:
       worlds = [generate_world("train", cfg.world.train_seed + i, cfg.world)
@@ -95,7 +101,6 @@ class VineyardEnv(Env):
     self.cfg = cfg
     self.worlds = list(worlds)
     self.robot = ROBOTS[cfg.robot.name]
-    self.auto_reset = auto_reset
     self.noise_factor = cfg.camera.noise_factor if noise_factor is None else noise_factor
     models = build_models(self.worlds, cfg)
     self.mj_model = models[0]
@@ -104,7 +109,7 @@ class VineyardEnv(Env):
     self.lanes = LaneTable(self.worlds)
     self._sample_m = self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
     self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds, cfg))
-    self._nsub = int(round(cfg.env.control_dt / cfg.env.physics_dt))
+    self.substeps = int(round(cfg.env.control_dt / cfg.env.physics_dt))
     low, high = action_box(cfg)
     self.action_low, self.action_high = jp.array(low, jp.float32), jp.array(high, jp.float32)
     data = mujoco.MjData(self.mj_model)
@@ -149,12 +154,14 @@ class VineyardEnv(Env):
                       jp.float32(along), jp.float32(lateral), jp.float32(yaw))
     return self._start(pose, k_obs, k_next, episodes=jp.int32(0), ref_jitter=False)
 
-  def step(self, state: State, action: jax.Array) -> State:
-    """One 0.1 s control step with auto-reset (see module docstring)."""
-    state, reset_mask = self._advance(state, action)
-    if self.auto_reset:
-      state = self._auto_reset(state, reset_mask)
-    return state
+  def restart(self, state: State, new_start: jax.Array) -> State:
+    """The episode after `state`'s: from its start pose, or from a new random one where
+    `new_start`; keys from `state.info["rng"]` (see `wrappers.AutoResetBatch`)."""
+    info = state.info
+    k_pose, k_obs, k_next = jax.random.split(info["rng"], 3)
+    pose = jax.tree.map(lambda a, b: jp.where(new_start, a, b), self.sample_pose(k_pose),
+                        info["pose"])
+    return self._start(pose, k_obs, k_next, info["episodes"])
 
   # ------------------------------------------------------------------ start poses
   def sample_pose(self, key: jax.Array, direction: float | None = None) -> dict:
@@ -188,6 +195,12 @@ class VineyardEnv(Env):
     heading = jp.arctan2(t[1], t[0]) + yaw
     eor = jp.where(direction > 0, line[-1], line[0])
     return dict(world=world, lane=lane, direction=direction, xy=xy, yaw=_wrap(heading), eor=eor)
+
+  def physics(self, m: mjx.Model, d: mjx.Data, action: jax.Array) -> mjx.Data:
+    """One control step of the physics alone: the wheel speeds of `action` [v, w] (in the
+    box), then `substeps` (control_dt / physics_dt) `mjx.step`s of world model `m`."""
+    d = d.replace(ctrl=jp.stack(wheel_speeds(action[0], action[1], self.robot)))
+    return jax.lax.fori_loop(0, self.substeps, lambda _, x: mjx.step(m, x), d)
 
   def terrain_height(self, m: mjx.Model, xy: jax.Array) -> jax.Array:
     """Height (m) of the heightfield of model `m` at xy (bilinear)."""
@@ -235,6 +248,7 @@ class VineyardEnv(Env):
         truncation=jp.float32(0), outcome=jp.int32(RUNNING), episode_return=jp.float32(0),
         last_return=jp.float32(0), last_outcome=jp.int32(RUNNING), last_length=jp.int32(0))
     metrics = {name: jp.float32(0) for name in OUTCOMES[1:]}
+    metrics.update({REWARD_PREFIX + k: jp.float32(0) for k in REWARD_TERMS})
     return State(pipeline_state=d, obs=obs, reward=jp.float32(0), done=jp.float32(0),
                  metrics=metrics, info=info)
 
@@ -258,15 +272,13 @@ class VineyardEnv(Env):
     dist = jp.linalg.norm(outside, axis=-1) - radius
     return jp.min(jp.where(centre[:, 2] > -50, dist, jp.inf))
 
-  def _advance(self, state: State, action: jax.Array):
-    """Physics, reward and termination of one control step, no reset. Returns the new
-    state (obs rendered after the physics) and the mask of envs to reset."""
+  def step(self, state: State, action: jax.Array) -> State:
+    """Physics, reward and termination of one 0.1 s control step of one env, no reset
+    (the observation is rendered after the physics)."""
     env, info, pose = self.cfg.env, state.info, state.info["pose"]
     action = jp.clip(action, self.action_low, self.action_high)
     m = self.world_model(pose["world"])
-    ctrl = jp.stack(wheel_speeds(action[0], action[1], self.robot))
-    d = state.pipeline_state.replace(ctrl=ctrl)
-    d = jax.lax.fori_loop(0, self._nsub, lambda _, x: mjx.step(m, x), d)
+    d = self.physics(m, state.pipeline_state, action)
 
     finite = jp.all(jp.isfinite(d.qpos)) & jp.all(jp.isfinite(d.qvel))
     exploded = ~finite | (jp.max(jp.abs(d.qvel[:6])) > MAX_QVEL)
@@ -298,17 +310,20 @@ class VineyardEnv(Env):
     outcome = jp.select(
         [exploded, success, collision, left_lane, reversed_, timeout],
         [PHYSICS, SUCCESS, COLLISION, LEFT_LANE, REVERSED, TIMEOUT], RUNNING).astype(jp.int32)
-    sparse = jp.select(
-        [outcome == SUCCESS, (outcome == COLLISION) | (outcome == LEFT_LANE),
-         outcome == REVERSED], [env.success_reward, env.collision_reward, env.reverse_reward],
-        0.0)
     r_heading = 1.0 - 2.0 * jp.sqrt(jp.abs(phi / jp.pi))
     if env.heading_reward == "speed_weighted":
       forward_speed = d.qvel[:2] @ jp.array([jp.cos(yaw), jp.sin(yaw)])
       r_heading = r_heading * jp.clip(forward_speed / env.v_max, 0.0, 1.0)
-    r_progress = info["dist"] - dist
-    reward = env.heading_weight * r_heading + env.progress_weight * r_progress + sparse
-    reward = jp.where(exploded, 0.0, reward)
+    # The named terms (a physics reset earns nothing); the reward is their sum.
+    terms = {
+        "heading": env.heading_weight * r_heading,
+        "progress": env.progress_weight * (info["dist"] - dist),
+        "success": jp.where(outcome == SUCCESS, env.success_reward, 0.0),
+        "collision": jp.where((outcome == COLLISION) | (outcome == LEFT_LANE),
+                              env.collision_reward, 0.0),
+        "reverse": jp.where(outcome == REVERSED, env.reverse_reward, 0.0)}
+    terms = {k: jp.where(exploded, 0.0, v).astype(jp.float32) for k, v in terms.items()}
+    reward = sum(terms.values())
     done = outcome != RUNNING
     truncation = (outcome == TIMEOUT) | (outcome == PHYSICS)
 
@@ -323,43 +338,62 @@ class VineyardEnv(Env):
                     last_length=jp.where(done, steps, info["last_length"]))
     metrics = {name: (outcome == code).astype(jp.float32)
                for code, name in enumerate(OUTCOMES) if code != RUNNING}
-    new = state.replace(pipeline_state=d, obs=obs, reward=reward.astype(jp.float32),
-                        done=done.astype(jp.float32), metrics=metrics, info=new_info)
-    return new, done
+    metrics.update({REWARD_PREFIX + k: v for k, v in terms.items()})
+    return state.replace(pipeline_state=d, obs=obs, reward=reward.astype(jp.float32),
+                         done=done.astype(jp.float32), metrics=metrics, info=new_info)
 
-  def _auto_reset(self, state: State, mask: jax.Array) -> State:
-    """Restarts the envs of `mask`: from their start pose, or every `pose_reset_every`
-    episodes from a new random pose."""
-    info = state.info
-    k_pose, k_obs, k_next = jax.random.split(info["rng"], 3)
-    episodes = info["episodes"] + 1
-    new_pose = episodes % self.cfg.env.pose_reset_every == 0
-    pose = jax.tree.map(lambda a, b: jp.where(new_pose, a, b), self.sample_pose(k_pose),
-                        info["pose"])
-    fresh = self._start(pose, k_obs, k_next, episodes)
-    fresh.info.update(last_return=info["last_return"], last_outcome=info["last_outcome"],
-                      last_length=info["last_length"], truncation=info["truncation"])
-    fresh = fresh.replace(reward=state.reward, done=state.done, metrics=state.metrics)
-    return jax.tree.map(lambda a, b: jp.where(mask, a, b), fresh, state)
 
-  # ------------------------------------------------------------------ batched helpers
-  def reset_batch(self, rng: jax.Array, num_envs: int) -> State:
-    """`num_envs` envs, reset with independent keys: a State with a leading env axis."""
-    return jax.vmap(self.reset)(jax.random.split(rng, num_envs))
+def training_env(cfg: Config, worlds: Sequence[Vineyard] | None = None) -> AutoResetBatch:
+  """The batch of auto-resetting vineyard envs the trainer uses (`protocol.TrainEnv`): a
+  new start pose every `env.pose_reset_every` episodes, the same one in between."""
+  return AutoResetBatch(VineyardEnv(cfg, worlds), cfg.env.pose_reset_every)
 
-  def step_batch(self, state: State, action: jax.Array,
-                 auto_reset: bool | None = None) -> tuple[State, dict]:
-    """Steps a batch of envs (leading axis) with auto-reset (unless `auto_reset`, default
-    the env's, is False), also returning the observation each env had before its reset
-    (`final_obs`), for bootstrapping through truncations. The reset observation is
-    rendered only when some env finished."""
-    advanced, done = jax.vmap(self._advance)(state, action)
-    final_obs = advanced.obs
-    if not (self.auto_reset if auto_reset is None else auto_reset):
-      return advanced, final_obs
-    new = jax.lax.cond(jp.any(done), jax.vmap(self._auto_reset), lambda s, _: s, advanced,
-                       done)
-    return new, final_obs
+
+# ---------------------------------------------------------------------- vector observations
+class VectorObsEnv(Env):
+  """The vineyard task with one flat observation vector, for learners that take vectors
+  only (brax's own SAC): the noisy depth image average-pooled to `pool` (h, w) cells and
+  scaled to [0, 1] of the camera's range, then [v_prev, w_prev, yaw]. Actions are in
+  [-1, 1]^2, mapped affinely onto [0, v_max] x [-w_max, w_max]. The vineyard env does not
+  auto-reset: brax's training wrappers (or `wrappers.brax_env`) do. `metrics["success"]`
+  is 1 at a successful step, so brax's evaluator reports `eval/episode_success`."""
+
+  def __init__(self, cfg, pool: tuple[int, int] = (8, 8)):
+    cam = cfg.camera
+    if cam.height % pool[0] or cam.width % pool[1]:
+      raise ValueError(f"camera {cam.height}x{cam.width} is not a multiple of pool {pool}")
+    self.cfg = cfg
+    self.pool = pool
+    self.inner = VineyardEnv(cfg)
+
+  def _flat(self, obs: dict) -> jax.Array:
+    h, w = self.pool
+    d = obs["depth"][..., 0]
+    d = d.reshape(h, d.shape[0] // h, w, d.shape[1] // w).mean(axis=(1, 3))
+    return jp.concatenate([d.reshape(-1) / self.cfg.camera.max_depth_m, obs["state"]])
+
+  def reset(self, rng: jax.Array) -> State:
+    state = self.inner.reset(rng)
+    return state.replace(obs=self._flat(state.obs))
+
+  def step(self, state: State, action: jax.Array) -> State:
+    low, high = self.inner.action_low, self.inner.action_high
+    physical = low + (jp.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+    new = self.inner.step(state, physical)
+    # keep metrics that wrappers added (brax's EpisodeWrapper tracks "reward")
+    return new.replace(obs=self._flat(new.obs), metrics={**state.metrics, **new.metrics})
+
+  @property
+  def observation_size(self) -> int:
+    return self.pool[0] * self.pool[1] + 3
+
+  @property
+  def action_size(self) -> int:
+    return self.inner.action_size
+
+  @property
+  def backend(self) -> str:
+    return self.inner.backend
 
 
 # ---------------------------------------------------------------------- reference driver
@@ -384,7 +418,7 @@ def pure_pursuit(env: VineyardEnv, lookahead_m: float = 1.0, speed: float | None
     ahead = int(np.ceil(lookahead_m / (env.worlds[0].length_m / (k - 1))))
     j = jp.clip(i + jp.where(pose["direction"] > 0, ahead, -ahead), 0, k - 1)
     target = line[j]
-    # If the lookahead runs past the EoR, aim beyond it along the travel direction.
+    # Past the EoR the lookahead point stays at the lane's last sample.
     rel = target - xy
     alpha = _wrap(jp.arctan2(rel[1], rel[0]) - yaw)
     dist = jp.maximum(jp.linalg.norm(rel), 0.3)

@@ -1,4 +1,4 @@
-"""The paper's evaluation protocol (SPEC section 7) on the test vineyard.
+"""The paper's evaluation protocol on the test vineyard (docs/design.md, Evaluation protocol).
 
   python -m mjxvine.evaluate --policy oracle --out out/eval_oracle
   python -m mjxvine.evaluate --policy random --runs 1 --out out/eval_random
@@ -30,14 +30,17 @@ import jax
 import jax.numpy as jp
 import numpy as np
 
-from mjxvine.config import (Config, add_config_args, config_from_args, enable_compile_cache,
-                            replace)
+from mjxvine import policies
+from mjxvine.checkpoint import WHICH, checkpoint_item
+from mjxvine.config import (ROBOT_NAMES, Config, add_config_args, config_from_args,
+                            enable_compile_cache, replace)
 # One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
-from mjxvine.deploy import PolicyError
+from mjxvine.deploy import PolicyError, read_policy_file
 from mjxvine.env import OUTCOMES, SUCCESS, VineyardEnv, pure_pursuit
 from mjxvine.worlds import Vineyard, make_world
 
-# The paper's Table (SPEC section 7): lane-direction -> (MAE, RMSE, v, v_std, w, w_std, succ)
+# The paper's table (docs/design.md, Evaluation protocol):
+# lane-direction -> (MAE, RMSE, v, v_std, w, w_std, succ)
 PAPER = {
     "1F": (0.076, 0.089, 0.493, 0.020, -0.027, 0.538, 5), "1R": (0.131, 0.141, 0.478, 0.053, -0.030, 0.623, 5),
     "2F": (0.068, 0.076, 0.488, 0.037, -0.028, 0.642, 5), "2R": (0.087, 0.105, 0.489, 0.037, -0.001, 0.610, 5),
@@ -63,13 +66,12 @@ def random_policy(env: VineyardEnv) -> Policy:
 
 def load_policy(spec: str, env: VineyardEnv, which: str = "best") -> tuple[Policy, str]:
   """`oracle`, `random`, a run directory / checkpoint, or an exported `.npz` actor.
-  which: the checkpoint of a run directory, "best" or "last" (`export.checkpoint_item`)."""
+  which: the checkpoint of a run directory, "best" or "last" (`checkpoint.checkpoint_item`)."""
   if spec == "oracle":
     return pure_pursuit(env), "oracle (pure pursuit, privileged pose)"
   if spec == "random":
     return random_policy(env), "random"
   path = check_policy_file(spec, which)
-  from mjxvine import policies
   return policies.load_actor_policy(path, env, which), str(path)
 
 
@@ -81,10 +83,8 @@ def check_policy_file(spec: str, which: str = "best") -> Path:
     what = "policy not found" if path.suffix == ".npz" else "no such run directory"
     raise PolicyError(f"{what}: {spec} (give oracle, random, a run dir or a .npz)")
   if path.suffix == ".npz":
-    from mjxvine.deploy import read_policy_file
     read_policy_file(path)
   else:
-    from mjxvine.export import checkpoint_item
     try:
       checkpoint_item(path, which)
     except FileNotFoundError as e:
@@ -154,7 +154,7 @@ def rollout(env: VineyardEnv, policy: Policy, lanes, directions, key, max_steps:
   def body(carry, k):
     state, alive = carry
     action = jax.vmap(policy)(state, jax.random.split(k, b))
-    state, _ = env.step_batch(state, action)
+    state = jax.vmap(env.step)(state, action)
     out = (state.pipeline_state.qpos[:, :2], action, alive, state.info["outcome"])
     return (state, alive & (state.done == 0)), out
 
@@ -230,7 +230,7 @@ def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
     raise ValueError(f"noise factor {noise_factor}: must be >= 0")
   # the protocol's episode limit, whatever the training episodes were
   cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
-  env = VineyardEnv(cfg, [world], noise_factor=noise_factor, auto_reset=False)
+  env = VineyardEnv(cfg, [world], noise_factor=noise_factor)
   name = policy_spec
   if policy is None:
     policy, name = load_policy(policy_spec, env, which)
@@ -404,7 +404,7 @@ def sweep_noise(cfg, policy_spec, world, out: Path, seed=0, which="best") -> dic
 def sweep_robots(cfg, policy_spec, world, out: Path, seed=0, which="best") -> dict:
   """The platform table: Jackal vs Husky on lanes 1F and 4F, 3 runs each."""
   table = {}
-  for robot in ("jackal", "husky"):
+  for robot in ROBOT_NAMES:
     doc = evaluate(replace(cfg, robot={"name": robot}), policy_spec, world, runs=3,
                    noise_factor=cfg.eval.noise_factor, lanes=(1, 4), directions=("F",), seed=seed,
                    which=which)
@@ -413,7 +413,8 @@ def sweep_robots(cfg, policy_spec, world, out: Path, seed=0, which="best") -> di
   lines = ["# Robots (3 runs each)", "", "| row | robot | success (paper) | T_avg s (paper) | "
            "MAE m (paper) | RMSE m (paper) |", "|---|---|---|---|---|---|"]
   paper_t = {("jackal", "1F"): 78, ("husky", "1F"): 69, ("jackal", "4F"): 78, ("husky", "4F"): 88}
-  for (robot, lane), r in sorted(table.items(), key=lambda kv: (kv[0][1], kv[0][0] != "jackal")):
+  order = lambda kv: (kv[0][1], ROBOT_NAMES.index(kv[0][0]))  # by lane, then robot
+  for (robot, lane), r in sorted(table.items(), key=order):
     p = PAPER_ROBOTS[(robot, lane)]
     lines.append(f"| {lane} | {robot} | {r['success']}/3 ({p[0]}/3) | {_fmt(r['time_to_eor_s'], 1)}"
                  f" ({paper_t[(robot, lane)]}) | {_metric(r, 'mae_m')} ({p[1]}) | "
@@ -436,11 +437,11 @@ def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python -m mjxvine.evaluate", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--policy", required=True, help="oracle, random, a run dir or a .npz")
-  p.add_argument("--which", choices=("best", "last"), default="best",
+  p.add_argument("--which", choices=WHICH, default="best",
                  help="with a run dir as --policy: its best checkpoint (the highest step "
                       "under RUN/checkpoints/best/; the last step when the run has none) or "
                       "the last one (the newest step under RUN/checkpoints/). Default: best")
-  p.add_argument("--robot", choices=("jackal", "husky"), default=None)
+  p.add_argument("--robot", choices=ROBOT_NAMES, default=None)
   p.add_argument("--noise", type=float, default=None,
                  help="depth noise factor, >= 0 (default: the config's eval.noise_factor)")
   p.add_argument("--runs", type=int, default=None,

@@ -7,7 +7,8 @@
 
 A run's checkpoint is RUN_DIR/checkpoints/best/<step>/ (the best one; --which best, the
 default) or the newest RUN_DIR/checkpoints/<step>/ (--which last); a run without a best
-checkpoint gives its last one. The run's config.yaml gives the metadata unless --config.
+checkpoint gives its last one (`mjxvine.checkpoint`). The run's config.yaml gives the
+metadata unless --config.
 
 The file holds the actor's float32 arrays under their flax paths ("tower/conv0/kernel",
 "dense0/bias", "mean/kernel", ...) and a JSON `__meta__` entry: format version, image
@@ -33,6 +34,7 @@ import numpy as np
 
 import mjxvine
 from mjxvine import config as config_lib
+from mjxvine.checkpoint import WHICH, restore_actor_params, run_dir_of
 from mjxvine.deploy import FORMAT_VERSION, META_KEY
 
 STATE_LAYOUT = ("v_prev", "w_prev", "yaw")
@@ -57,7 +59,7 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
   return {
       "image_size": [cfg.camera.height, cfg.camera.width],
       "fovx_deg": cfg.camera.fovx_deg, "fovy_deg": cfg.camera.fovy_deg,
-      "max_depth_m": cfg.camera.max_depth_m, "depth_scale": 1.0 / cfg.camera.max_depth_m,
+      "max_depth_m": cfg.camera.max_depth_m, "depth_scale": config_lib.depth_input_scale(cfg),
       "action_low": low, "action_high": high,
       "control_dt": cfg.env.control_dt, "config_hash": config_lib.config_hash(cfg),
       # the state's yaw: "start", the IMU yaw minus the yaw at the row entrance; "world",
@@ -219,90 +221,7 @@ def export_onnx(source: Any, path: str | Path, meta: dict | None = None,
 
 
 # ----------------------------------------------------------------------------------------
-# CLI: restore the actor params from an orbax checkpoint.
-
-WHICH = ("best", "last")
-
-
-def _item_of(step: Path) -> Path | None:
-  """The orbax item dir of a step dir: itself when it holds _METADATA, else its item
-  subdir ("default" for a CheckpointManager step); None when there is none."""
-  if (step / "_METADATA").is_file():
-    return step
-  items = sorted(p for p in step.iterdir() if (p / "_METADATA").is_file()) if step.is_dir() else []
-  return next((p for p in items if p.name == "default"), items[0] if items else None)
-
-
-def _steps(manager: Path) -> dict[int, Path]:
-  """{step: item dir} of the finished steps of a CheckpointManager dir (numeric subdirs;
-  orbax writes a step under a temporary name and renames it once complete)."""
-  if not manager.is_dir():
-    return {}
-  found = {int(p.name): _item_of(p) for p in manager.iterdir() if p.name.isdigit()}
-  return {step: item for step, item in found.items() if item is not None}
-
-
-def checkpoint_item(path: str | Path, which: str = "best") -> Path:
-  """The absolute orbax item dir to restore from a run dir, its `checkpoints` dir (or
-  `checkpoints/best`), a step dir or an item dir (one holding _METADATA: used as is).
-
-  which="best": the highest step under checkpoints/best/, else the last regular step;
-  which="last": the highest step directly under checkpoints/ (never best/). The path is
-  made absolute (orbax refuses relative ones). FileNotFoundError "no such run directory:
-  PATH" when `path` does not exist, and one naming `path` when it holds no checkpoint.
-  """
-  if which not in WHICH:
-    raise ValueError(f"which={which!r}: expected one of {', '.join(WHICH)}")
-  given = Path(path)
-  path = given.expanduser().resolve()
-  if not path.exists():
-    raise FileNotFoundError(f"no such run directory: {given}")
-  item = _item_of(path)
-  if item is not None:
-    return item
-  root = path / "checkpoints" if (path / "checkpoints").is_dir() else path
-  steps = (_steps(root / "best") if which == "best" else {}) or _steps(root)
-  if not steps:
-    raise FileNotFoundError(f"{given}: no orbax checkpoint inside (no checkpoints/<step>/ "
-                            "with a _METADATA file)")
-  return steps[max(steps)]
-
-
-def _run_dir(item: Path) -> Path | None:
-  """The run dir of a checkpoint item (the parent of its `checkpoints` dir), or None."""
-  return next((p.parent for p in item.parents if p.name == "checkpoints"), None)
-
-
-def _find_key(tree: Any, key: str) -> Any:
-  """The first value under `key` in a nested dict (breadth first), or None."""
-  level = [tree]
-  while level:
-    nxt = []
-    for node in level:
-      if isinstance(node, dict):
-        if key in node:
-          return node[key]
-        nxt.extend(node.values())
-    level = nxt
-  return None
-
-
-def load_actor_params(checkpoint: str | Path, which: str = "best") -> tuple[Any, Path]:
-  """(actor_params as numpy arrays, item dir) of the checkpoint that `checkpoint_item`
-  picks under a run dir (or checkpoint dir)."""
-  import jax
-  import orbax.checkpoint as ocp
-
-  item = checkpoint_item(checkpoint, which)
-  ckpt = ocp.PyTreeCheckpointer()
-  tree_meta = ckpt.metadata(item).item_metadata
-  tree_meta = getattr(tree_meta, "tree", tree_meta)
-  restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree_meta)
-  tree = ckpt.restore(item, args=ocp.args.PyTreeRestore(restore_args=restore_args))
-  actor = _find_key(tree, "actor_params")
-  if actor is None:
-    raise KeyError(f"{item}: the checkpoint has no 'actor_params' entry")
-  return actor, item
+# CLI: a run's checkpoint (`mjxvine.checkpoint`) or an .npz -> a policy file
 
 
 def _fail(message: str) -> int:
@@ -344,10 +263,10 @@ def main(argv=None) -> int:
   if not src.exists():
     return _fail(f"no such {'policy file' if src.suffix == '.npz' else 'run directory'}: {src}")
   try:
-    actor, item = load_actor_params(src, args.which)
-  except (FileNotFoundError, KeyError) as e:
+    actor, item = restore_actor_params(src, args.which)
+  except (FileNotFoundError, KeyError, ValueError) as e:  # no, or a damaged, checkpoint
     return _fail(e.args[0] if e.args else str(e))  # a KeyError's str() is quoted
-  run_dir = _run_dir(item)
+  run_dir = run_dir_of(item)
   if args.config is None:  # the run's own config: image size, FOVs, action box
     args.config = next((str(d / "config.yaml") for d in (run_dir, src)
                         if d and (d / "config.yaml").is_file()), None)

@@ -1,4 +1,5 @@
-"""Actor and twin-critic networks of SAC (SPEC section 6), and the squashed Gaussian.
+"""Actor and twin-critic networks of SAC (docs/design.md, SAC hyper-parameters), and the
+squashed Gaussian.
 
 Observations are either
   * a dict `{"depth": (..., H, W, 1) float32 metres, "state": (..., S) float32}`: the
@@ -29,7 +30,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from mjxvine.config import action_box
+from mjxvine.config import action_box, depth_input_scale
 
 Obs = Any  # a dict {"depth", "state"} or a flat vector, with leading batch dims
 
@@ -127,6 +128,20 @@ class Critic(nn.Module):
     return nn.Dense(1, name="q")(x.astype(jnp.float32))[..., 0]
 
 
+class CriticHead(nn.Module):
+  """A critic's layers after its tower: `__call__(x) -> q (...,)` on x = [features, state,
+  action]. Its params are a `Critic`'s without "tower" (the same names), so that
+  `twin_critic_features` and `twin_critic_heads` split one critic evaluation in two."""
+  hidden: Sequence[int] = (256, 256)
+  dtype: Any = jnp.float32
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:
+    for i, h in enumerate(self.hidden):
+      x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
+    return nn.Dense(1, name="q")(x.astype(jnp.float32))[..., 0]
+
+
 class TwinCritic(nn.Module):
   """`num` independent critics, params "critic0", "critic1", ...
 
@@ -147,6 +162,28 @@ class TwinCritic(nn.Module):
         for i in range(self.num)])
 
 
+def twin_critic_features(critic: "TwinCritic", params: Any, obs: Obs) -> list[jax.Array]:
+  """Each critic's tower features of `obs`, [(..., conv_features)] * num (a vector
+  observation has no tower: the features are the observation itself)."""
+  if not isinstance(obs, dict):
+    return [obs] * critic.num
+  tower = ConvTower(critic.conv_features, critic.depth_scale, critic.dtype)
+  return [tower.apply({"params": params[f"critic{i}"]["tower"]}, obs["depth"])
+          for i in range(critic.num)]
+
+
+def twin_critic_heads(critic: "TwinCritic", params: Any, features: list[jax.Array], obs: Obs,
+                      action: jax.Array) -> jax.Array:
+  """q (num, ...) from `twin_critic_features`' output: with the features of the same
+  params, exactly `critic.apply({"params": params}, obs, action)`."""
+  head = CriticHead(critic.hidden, critic.dtype)
+  state = [obs["state"]] if isinstance(obs, dict) else []
+  return jnp.stack([
+      head.apply({"params": {k: v for k, v in params[f"critic{i}"].items() if k != "tower"}},
+                 jnp.concatenate([f] + state + [action], axis=-1))
+      for i, f in enumerate(features)])
+
+
 class SACNetworks(NamedTuple):
   """The static parts of the agent: modules and the action box (each (A,) float32)."""
   actor: Actor
@@ -161,7 +198,7 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
                   compute_dtype: str = "float32") -> SACNetworks:
   """Builds the actor and twin critic for an action box [action_low, action_high].
 
-  `depth_scale` multiplies the depth (metres) before the first conv; the SPEC
+  `depth_scale` multiplies the depth (metres) before the first conv; the paper's
   networks are `hidden=256, num_hidden=2, conv_features=32`. `compute_dtype`: "float32"
   or "bfloat16" (mixed precision, see the module docstring).
   """
@@ -180,12 +217,12 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
 def make_networks_from_config(cfg) -> SACNetworks:
   """The vineyard networks of a `mjxvine.config.Config`.
 
-  Action box `config.action_box`; depth scaled by 1 / camera.max_depth_m so
-  that the tower sees [0, 1]; sizes and log-std bounds from `cfg.sac`.
+  Action box `config.action_box`; depth scaled by `config.depth_input_scale` so that the
+  tower sees [0, 1]; sizes and log-std bounds from `cfg.sac`.
   """
   return make_networks(
       *action_box(cfg), hidden=cfg.sac.hidden,
-      conv_features=cfg.sac.conv_features, depth_scale=1.0 / cfg.camera.max_depth_m,
+      conv_features=cfg.sac.conv_features, depth_scale=depth_input_scale(cfg),
       log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
       compute_dtype=cfg.sac.compute_dtype)
 

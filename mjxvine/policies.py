@@ -1,17 +1,41 @@
-"""Trained actors as evaluation policies: from a run directory (orbax checkpoint) or an
-exported `.npz`, run as the JAX actor's deterministic (mean) action."""
+"""Trained actors as evaluation policies, policy(state, key) -> action: the one closure of
+the actor's deterministic (mean) action (`actor_policy`; the trainer's closing evaluation,
+`mjxvine.evaluate` and `mjxvine.bench` use it), and the actor params it runs, from a run
+directory (`mjxvine.checkpoint`) or an exported `.npz` (read by `deploy.read_policy_file`,
+the robot's loader with its format checks). Every failure is a `deploy.PolicyError`."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import jax
 import jax.numpy as jp
 
+from mjxvine import checkpoint
 from mjxvine import networks as nw
 from mjxvine.deploy import PolicyError, read_policy_file
 
 
+def actor_policy(nets: nw.SACNetworks, actor_params, *, brax: bool = False):
+  """The actor's deterministic action (the squashed mean, in the action box) as a policy.
+
+  nets: the networks the params belong to (`sac.SAC.nets`, `make_networks_from_config`).
+  actor_params: the actor's flax "params" dict of one member (no seeds axis).
+  Returns policy(state, key) -> action (..., A) for an env State (its `.obs`, batched or
+  not); the key is unused. brax=True: brax's `Policy` instead, (obs, key) -> (action, {}),
+  for `brax.training.acting.Evaluator`.
+  """
+  def policy(state, key):
+    del key
+    mean, _ = nets.actor.apply({"params": actor_params}, state if brax else state.obs)
+    action = nw.deterministic_action(mean, nets.action_low, nets.action_high)
+    return (action, {}) if brax else action
+
+  return policy
+
+
 def _unflatten(arrays: dict) -> dict:
+  """{"a/b/c": array} (a policy file's flax paths) -> nested dict of jax arrays."""
   tree: dict = {}
   for name, value in arrays.items():
     node = tree
@@ -25,7 +49,7 @@ def _unflatten(arrays: dict) -> dict:
 def load_actor_params(path: Path, env, which: str = "best") -> dict:
   """Actor params from a .npz export or a run directory, checked against `env`'s camera.
 
-  which: the checkpoint of a run directory, "best" or "last" (`export.checkpoint_item`).
+  which: the checkpoint of a run directory, "best" or "last" (`checkpoint.checkpoint_item`).
   Raises `PolicyError` (`PolicyFormatError` for an unreadable .npz).
   """
   path = Path(path)
@@ -38,21 +62,16 @@ def load_actor_params(path: Path, env, which: str = "best") -> dict:
       raise PolicyError(f"{path}: trained for {got} depth images, the "
                         f"evaluation renders {want[0]}x{want[1]} (set camera.height/width)")
     return _unflatten(arrays)
-  from mjxvine import export
   try:
-    params, _ = export.load_actor_params(path, which)
-  except (FileNotFoundError, KeyError) as e:
+    params, _ = checkpoint.restore_actor_params(path, which)
+  except (FileNotFoundError, KeyError, ValueError) as e:
     raise PolicyError(e.args[0] if e.args else str(e)) from None
-  return jax_tree(params)
-
-
-def jax_tree(params):
-  import jax
   return jax.tree.map(jp.asarray, params)
 
 
 def load_actor_policy(path: Path, env, which: str = "best"):
-  """policy(state, key) -> deterministic action, for `mjxvine.evaluate`."""
+  """`actor_policy` of the actor at `path` (see `load_actor_params`), for `env`'s config;
+  PolicyError when the params do not fit that config's networks."""
   params = load_actor_params(Path(path), env, which)
   nets = nw.make_networks_from_config(env.cfg)
   try:
@@ -62,10 +81,4 @@ def load_actor_policy(path: Path, env, which: str = "best"):
   except Exception as e:  # noqa: BLE001 - any mismatch of shapes or names
     raise PolicyError(f"{path}: the actor does not fit this config's networks "
                       f"({type(e).__name__}: {str(e).splitlines()[0][:160]})") from None
-
-  def policy(state, key):
-    del key
-    mean, _ = nets.actor.apply({"params": params}, state.obs)
-    return nw.deterministic_action(mean, nets.action_low, nets.action_high)
-
-  return policy
+  return actor_policy(nets, params)

@@ -5,7 +5,7 @@ Everything here is a pure function of pytrees, jit-able and scan-able:
     `act_deterministic`;
   * losses `critic_loss`, `actor_loss`, `alpha_loss` and `polyak`;
   * the replay buffer `init_buffer` / `insert` / `sample`;
-  * exploration `explore_action` / `decay_eps` (SPEC section 6).
+  * exploration `explore_action` / `decay_eps` (docs/design.md, SAC hyper-parameters).
 
 Bootstrapping: the target is `r + gamma * (1 - terminal) * (min_i Q'_i(s', a') - alpha
 log pi(a'|s'))`; a time-out (`truncated`) is *not* terminal and bootstraps through
@@ -90,23 +90,38 @@ def critic_target(nets: nw.SACNetworks, actor_params: Params, target_critic_para
 
 def critic_loss(critic_params: Params, target_critic_params: Params, actor_params: Params,
                 alpha: jax.Array, batch: Transition, key: jax.Array, nets: nw.SACNetworks,
-                gamma: float) -> tuple[jax.Array, dict]:
-  """Twin-Q loss: 0.5 * sum_i wmean_b (Q_i(s, a) - y)^2. Returns (loss, {"q": (2, B)})."""
+                gamma: float, keep_features: bool = False) -> tuple[jax.Array, dict]:
+  """Twin-Q loss: 0.5 * sum_i wmean_b (Q_i(s, a) - y)^2. Returns (loss, {"q": (2, B),
+  "target": (B,)}, plus "features": the critics' tower features of obs, with
+  `keep_features`)."""
   y = critic_target(nets, actor_params, target_critic_params, alpha, batch, key, gamma)
-  q = nets.critic.apply({"params": critic_params}, batch.obs, batch.action)  # (2, B)
+  aux = {}
+  if keep_features:
+    feats = nw.twin_critic_features(nets.critic, critic_params, batch.obs)
+    q = nw.twin_critic_heads(nets.critic, critic_params, feats, batch.obs, batch.action)
+    aux["features"] = feats
+  else:
+    q = nets.critic.apply({"params": critic_params}, batch.obs, batch.action)  # (2, B)
   per_sample = 0.5 * jnp.sum((q - y[None]) ** 2, axis=0)
-  return _wmean(per_sample, batch.weight), {"q": q, "target": y}
+  return _wmean(per_sample, batch.weight), {"q": q, "target": y, **aux}
 
 
 def actor_loss(actor_params: Params, critic_params: Params, alpha: jax.Array, batch: Transition,
-               key: jax.Array, nets: nw.SACNetworks) -> tuple[jax.Array, jax.Array]:
+               key: jax.Array, nets: nw.SACNetworks,
+               critic_features: list | None = None) -> tuple[jax.Array, jax.Array]:
   """mean_b (alpha * log pi(a|s) - min_i Q_i(s, a)), a ~ pi(.|s) reparameterised.
 
-  Returns (loss, log_prob (B,)).
+  `critic_features`: the critics' tower features of obs for `critic_params` (from
+  `critic_loss`), held fixed, instead of running the towers again. Returns (loss,
+  log_prob (B,)).
   """
   mean, log_std = nets.actor.apply({"params": actor_params}, batch.obs)
   a, logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
-  q = nets.critic.apply({"params": critic_params}, batch.obs, a)
+  if critic_features is None:
+    q = nets.critic.apply({"params": critic_params}, batch.obs, a)
+  else:
+    q = nw.twin_critic_heads(nets.critic, critic_params,
+                             jax.lax.stop_gradient(critic_features), batch.obs, a)
   return jnp.mean(alpha * logp - jnp.min(q, axis=0)), logp
 
 
@@ -193,14 +208,18 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
     k_critic, k_actor = jax.random.split(key)
     alpha = jnp.exp(state.log_alpha)
 
+    reuse = cfg.reuse_critic_features
     (c_loss, c_aux), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(
         state.critic_params, state.target_critic_params, state.actor_params, alpha, batch,
-        k_critic, nets, cfg.gamma)
+        k_critic, nets, cfg.gamma, reuse)
     c_updates, critic_opt_state = opt.update(c_grads, state.critic_opt_state)
     critic_params = optax.apply_updates(state.critic_params, c_updates)
 
+    # reuse: the actor is scored by the critics of the critic loss (before their update),
+    # whose tower features of obs are already computed
     (a_loss, logp), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(
-        state.actor_params, critic_params, alpha, batch, k_actor, nets)
+        state.actor_params, state.critic_params if reuse else critic_params, alpha, batch,
+        k_actor, nets, c_aux.get("features"))
     a_updates, actor_opt_state = opt.update(a_grads, state.actor_opt_state)
     actor_params = optax.apply_updates(state.actor_params, a_updates)
 
@@ -434,7 +453,7 @@ def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
 
 
 # ----------------------------------------------------------------------------------------
-# Exploration (SPEC section 6).
+# Exploration (docs/design.md, SAC hyper-parameters).
 
 
 def explore_action(key: jax.Array, policy_action: jax.Array, eps: jax.Array, low: jax.Array,

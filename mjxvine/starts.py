@@ -70,7 +70,7 @@ def make_start_eval(env: VineyardEnv, act: Callable, starts: int, members: int =
     speed = speed + driving * action[:, 0]
     steps = steps + driving
     # no auto-reset: an ended episode stays ended (and its env stops costing a reset)
-    state, _ = env.step_batch(state, action, auto_reset=False)
+    state = jax.vmap(env.step)(state, action)
     first = (outcome == RUNNING) & (state.done > 0)
     outcome = jp.where(first, state.info["outcome"], outcome)
     return state, outcome, err, speed, steps

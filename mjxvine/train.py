@@ -5,15 +5,16 @@
   python -m mjxvine.train --config experiments/fast.yaml --seeds 4
   python -m mjxvine.train --config experiments/default.yaml --sweep sac.learning_rate=2e-4,1e-3
 
-One training iteration (N env steps with exploration, one replay insert, G gradient steps)
-is one jit-compiled function; `train.iters_per_chunk` of them run under `lax.scan` (on
-the CPU backend a host loop of the jitted iteration, see `_scan_chunks`); the host only
-logs, checkpoints and checks for non-finite values between chunks. `--seeds K` and
-`--sweep` vmap the whole training state over the members (one compiled program); envs and
-replay are split over the devices (`mjxvine.parallel`).
+The run around the trainer (`mjxvine.trainer`: pure, compiled chunks of training
+iterations): the CLI, resume, checkpoints (`mjxvine.checkpoint`), logs and plots, the
+non-finite check between chunks, and, with the vineyard, the evaluations from fresh starts
+during training (`mjxvine.starts`) and the closing test-world report (`mjxvine.evaluate`).
+`--seeds K` and `--sweep` vmap the whole training state over the members (one compiled
+program); envs and replay are split over the devices (`mjxvine.parallel`).
 
 Run directory: config.yaml (resolved), metrics.jsonl, TensorBoard events (tb/),
-checkpoints/ (orbax), learning_curve.png, eval/ (the final evaluation report).
+checkpoints/ (orbax, `mjxvine.checkpoint`), learning_curve.png, eval/ (the final evaluation
+report).
 """
 
 from __future__ import annotations
@@ -21,227 +22,27 @@ from __future__ import annotations
 import argparse
 import datetime
 import functools
-import itertools
 import json
 import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
-import flax.struct
 import jax
 import jax.numpy as jp
 import numpy as np
 
-from mjxvine import networks as nw
-from mjxvine import parallel
+from mjxvine import policies
 from mjxvine import sac as sac_lib
 from mjxvine import starts
+from mjxvine.checkpoint import Checkpoints
 from mjxvine.config import (Config, add_config_args, config_from_args, enable_compile_cache,
-                            load_config, parse_sweep, replace, to_yaml)
-from mjxvine.env import PHYSICS, SUCCESS, TIMEOUT, VineyardEnv
+                            load_config, replace, to_yaml)
+from mjxvine.protocol import TrainEnv
+from mjxvine.trainer import (NonFiniteError, compile_key, compiled, init_members,
+                             sweep_members)
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "default.yaml"
-
-
-class TrainState(flax.struct.PyTreeNode):
-  """Everything a run carries from one iteration to the next (one seed)."""
-  learner: sac_lib.LearnerState
-  buffer: sac_lib.ReplayBuffer
-  env_state: Any
-  key: jax.Array
-  env_steps: jax.Array    # () int32, summed over envs
-  episodes: jax.Array     # () int32 finished episodes
-  budget: jax.Array       # () float32 train.total_env_steps, for the epsilon schedule
-  # Sums since the last log (reset by the host): finished episodes, their returns,
-  # successes and time-outs; commanded speed (m/s) summed over every env step.
-  log_episodes: jax.Array
-  log_return: jax.Array
-  log_success: jax.Array
-  log_timeout: jax.Array
-  log_speed: jax.Array
-
-  def reset_log(self) -> "TrainState":
-    zero = jp.zeros_like
-    return self.replace(log_episodes=zero(self.log_episodes), log_return=zero(self.log_return),
-                        log_success=zero(self.log_success), log_timeout=zero(self.log_timeout),
-                        log_speed=zero(self.log_speed))
-
-
-def learning(cfg: Config, env_steps, rows_written):
-  """Whether the iteration that starts at `env_steps` (summed over envs), after its insert
-  brought the replay to `rows_written` rows, takes gradient steps: past the warm-up, with
-  a full batch sampleable. The one rule of the device (traced) and host (ints) paths."""
-  n = cfg.env.num_envs
-  sampleable = (jp.minimum(rows_written, cfg.sac.buffer_size // n) - 1) * n
-  return (env_steps + n >= cfg.sac.warmup_steps) & (sampleable >= cfg.sac.batch_size)
-
-
-class NonFiniteError(RuntimeError):
-  """A loss or a parameter became NaN or infinite."""
-
-
-def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
-  """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
-  collect, learn_step, summarize): a chunk is `train.iters_per_chunk` iterations, each
-  `collect` (env step, replay insert) then, once `learning`, G = sac.grad_steps_per_iter
-  `learn_step`s; `chunk` runs them on device, the host path calls the pieces.
-  `shard_batch`: see `mjxvine.sac.make_sac` (data parallelism over devices)."""
-  n = cfg.env.num_envs
-  # The action box comes from the env: the vineyard's [0, v_max] x [-w_max, w_max], or
-  # [-1, 1] for a brax env behind `BraxAdapter`.
-  nets = nw.make_networks(env.action_low, env.action_high, hidden=cfg.sac.hidden,
-                          conv_features=cfg.sac.conv_features,
-                          depth_scale=1.0 / cfg.camera.max_depth_m,
-                          log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
-                          compute_dtype=cfg.sac.compute_dtype)
-  sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch)
-  warmup = cfg.sac.warmup_steps
-
-  def init(key: jax.Array) -> TrainState:
-    k_env, k_learner, k_run = jax.random.split(key, 3)
-    env_state = env.reset_batch(k_env, n)
-    learner = sac.init(k_learner, env_state.obs)
-    buffer = sac_lib.init_buffer(env_state.obs, env.action_size, cfg.sac.buffer_size,
-                                 cfg.camera.max_depth_m,
-                                 depth_dtype=jp.dtype(cfg.sac.replay_depth_dtype))
-    z, zf = jp.zeros((), jp.int32), jp.zeros((), jp.float32)
-    return TrainState(learner=learner, buffer=buffer, env_state=env_state, key=k_run,
-                      env_steps=z, episodes=z, budget=zf, log_episodes=z, log_return=zf,
-                      log_success=z, log_timeout=z, log_speed=zf)
-
-  def collect(ts: TrainState):
-    """One env step of the N envs with exploration, inserted into the replay. Returns the
-    new state, the key of this iteration's gradient steps and whether they are due."""
-    key, k_act, k_explore, k_update = jax.random.split(ts.key, 4)
-    obs = ts.env_state.obs
-    policy_action = sac.act(ts.learner.actor_params, obs, k_act)
-    in_warmup = ts.env_steps < warmup
-    eps = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
-    action = sac_lib.explore_action(k_explore, policy_action, eps, env.action_low,
-                                    env.action_high, in_warmup)
-    env_state, final_obs = env.step_batch(ts.env_state, action)
-    done = env_state.done > 0
-    truncated = done & (env_state.info["truncation"] > 0)
-    outcome = env_state.info["last_outcome"]
-    # A physics reset's successor is the restored old state: nothing to learn from.
-    weight = jp.where(done & (outcome == PHYSICS), 0.0, 1.0)
-    tr = sac_lib.Transition(obs=obs, action=action,
-                            reward=env_state.reward * cfg.sac.reward_scale,
-                            terminal=(done & ~truncated).astype(jp.float32),
-                            truncated=truncated.astype(jp.float32), next_obs=final_obs,
-                            weight=weight)
-    buffer = sac_lib.insert(ts.buffer, tr)
-    learn = learning(cfg, ts.env_steps, buffer.rows_written)
-    ts = ts.replace(
-        buffer=buffer, env_state=env_state, key=key,
-        env_steps=ts.env_steps + n, episodes=ts.episodes + done.sum(),
-        log_episodes=ts.log_episodes + done.sum(),
-        log_return=ts.log_return + jp.sum(jp.where(done, env_state.info["last_return"], 0.0)),
-        log_success=ts.log_success + jp.sum(done & (outcome == SUCCESS)),
-        log_timeout=ts.log_timeout + jp.sum(done & (outcome == TIMEOUT)),
-        log_speed=ts.log_speed + jp.sum(action[:, 0]))
-    return ts, k_update, learn
-
-  def learn_step(ts: TrainState, key: jax.Array):
-    """One gradient step on a replay batch: `key` is one of split(k_update, G)."""
-    learner, metrics = sac.update_from(ts.learner, ts.buffer, key)
-    return ts.replace(learner=learner), metrics
-
-  def iteration(ts: TrainState, _):
-    """collect, then G gradient steps if due (lax.cond): the device path."""
-    ts, k_update, learn = collect(ts)
-    learner, metrics = jax.lax.cond(
-        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update),
-        lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
-    metrics["learning"] = learn.astype(jp.float32)
-    return ts.replace(learner=learner), metrics
-
-  def summarize(ts: TrainState, metrics: dict):
-    """Chunk metrics: losses averaged over the iterations that learned."""
-    metrics = dict(metrics)
-    learning = metrics.pop("learning")
-    w = learning / jp.maximum(learning.sum(), 1.0)
-    out = {k: jp.sum(v * w) for k, v in metrics.items()}
-    out["eps"] = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
-    out["alpha"] = jp.exp(ts.learner.log_alpha)
-    out["finite"] = _all_finite(ts.learner)
-    return ts, out
-
-  def chunk(ts: TrainState):
-    return summarize(*jax.lax.scan(iteration, ts, None, cfg.train.iters_per_chunk))
-
-  return sac, init, chunk, collect, learn_step, summarize
-
-
-def _scan_chunks(cfg: Config) -> bool:
-  """Whether a chunk runs as one `lax.scan` program. On XLA's CPU backend convolutions
-  inside a loop run ~20-100x slower (jax-ml/jax#12868), so there the host loops over the
-  jitted iteration instead; accelerators scan."""
-  if cfg.train.chunk_loop == "auto":
-    return jax.default_backend() != "cpu"
-  return cfg.train.chunk_loop == "scan"
-
-
-@functools.lru_cache(maxsize=4)
-def _compiled(cfg: Config, seeds: int, env):
-  mesh = parallel.make_mesh(cfg.train.devices)
-  parallel.check_divisible(mesh, cfg.env.num_envs, cfg.sac.batch_size)
-  sac, init, chunk, collect, learn_step, summarize = make_trainer(
-      cfg, env, parallel.batch_constraint(mesh, seeds))
-  batch = (lambda f: f) if seeds == 1 else jax.vmap
-  init_one = (lambda k: init(k[0])) if seeds == 1 else jax.vmap(init)
-  keys = jax.ShapeDtypeStruct((seeds, 2), jp.uint32)
-  abstract = jax.eval_shape(init_one, keys)
-  shard = parallel.train_state_sharding(abstract, mesh, seeds)
-  init_fn = jax.jit(init_one, out_shardings=shard)
-  # Donating the state lets XLA update the replay buffer in place instead of copying it;
-  # pinning its sharding keeps envs and replay rows on their devices between calls.
-  jit_state = lambda f, outs: jax.jit(f, donate_argnums=0, out_shardings=(shard, *outs))
-  if _scan_chunks(cfg):
-    return sac, init_fn, jit_state(batch(chunk), (None,))
-  # The host path: the env step and one gradient step are separate programs, so each is
-  # compiled once, and the G gradient steps are G calls (no convolutions in a loop body).
-  collect_fn = jit_state(batch(collect), (None, None))
-  learn_fn = jit_state(batch(learn_step), (None,))
-  g = cfg.sac.grad_steps_per_iter
-  split_fn = jax.jit(batch(lambda k: jax.random.split(k, g)))
-  summarize_fn = jax.jit(batch(summarize))
-  lead = () if seeds == 1 else (seeds,)
-  metric_shapes = jax.eval_shape(batch(learn_step), abstract,
-                                 jax.ShapeDtypeStruct(lead + (2,), jp.uint32))[1]
-  idle = {k: jp.zeros(v.shape, v.dtype) for k, v in metric_shapes.items()}
-  idle["learning"] = jp.zeros(lead)
-  n = cfg.env.num_envs
-  learned = False  # whether the gradient step has been compiled (said once)
-
-  def host_chunk(ts):
-    nonlocal learned
-    rows = []
-    steps, written = (int(np.max(x)) for x in jax.device_get((ts.env_steps,
-                                                              ts.buffer.rows_written)))
-    for _ in range(cfg.train.iters_per_chunk):
-      written += 1
-      learn = bool(learning(cfg, steps, written))
-      ts, k_update, _ = collect_fn(ts)
-      steps += n
-      if not learn:
-        rows.append(idle)
-        continue
-      if not learned:
-        learned = True
-        print(f"learning starts at env step {steps - n}: compiling the gradient step...",
-              file=sys.stderr, flush=True)
-      keys = split_fn(k_update)
-      for i in range(g):
-        ts, m = learn_fn(ts, keys[i] if seeds == 1 else keys[:, i])
-        rows.append({**m, "learning": jp.ones(lead)})
-    # iterations axis after the seeds axis, if any
-    stacked = jax.tree.map(lambda *x: jp.stack(x, axis=0 if seeds == 1 else 1), *rows)
-    return summarize_fn(ts, stacked)
-
-  return sac, init_fn, host_chunk
 
 
 @functools.lru_cache(maxsize=4)
@@ -255,7 +56,7 @@ def start_evaluator(cfg: Config, seeds: int = 1):
   """The evaluation from `train.eval_starts` fresh starts per direction of a run of `cfg`
   (`mjxvine.starts`), compiled once per process: run(starts_params(actor params, policy,
   seeds), key) -> dict; policy `starts.ACTOR`, or a baseline (`starts.BASELINES`)."""
-  key = _compile_key(cfg)
+  key = compile_key(cfg)
   return _start_evaluator(replace(key, train={"eval_starts": cfg.train.eval_starts}), seeds,
                           _default_env(key))
 
@@ -266,106 +67,19 @@ def starts_params(actor_params, policy: int, seeds: int = 1) -> dict:
           "policy": jp.full((seeds,) if seeds > 1 else (), policy, jp.int32)}
 
 
-def _compile_key(cfg: Config) -> Config:
-  """`cfg` without the fields that do not shape the compiled program."""
-  return replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
-                             "save_replay": False, "sweep": "", "num_seeds": 1,
-                             "max_minutes": 0.0, "eval_every_chunks": 0, "eval_starts": 1},
-                 eval={"runs_after_train": 0})
-
-
 @functools.lru_cache(maxsize=4)
-def _default_env(cfg: Config) -> VineyardEnv:
-  return VineyardEnv(cfg)
+def _default_env(cfg: Config) -> TrainEnv:
+  from mjxvine.env import training_env  # the run's default; the trainer takes any env
+  return training_env(cfg)
 
 
 def compiled_trainer(cfg: Config, seeds: int = 1, env=None):
   """(sac, init(keys (seeds, 2)), chunk) jitted, cached per process on everything that
   shapes the compiled program (so a resume in the same process does not recompile).
-  `env`: the config's `VineyardEnv` by default, or e.g. a `BraxAdapter`."""
-  key = _compile_key(cfg)
-  return _compiled(key, seeds, _default_env(key) if env is None else env)
-
-
-def _zero_metrics(sac, learner, buffer, key):
-  shapes = jax.eval_shape(lambda: sac.update_many(learner, buffer, key)[1])
-  return jax.tree.map(lambda s: jp.zeros(s.shape, s.dtype), shapes)
-
-
-def _all_finite(tree) -> jax.Array:
-  leaves = [jp.all(jp.isfinite(x)) for x in jax.tree.leaves(tree)
-            if jp.issubdtype(x.dtype, jp.floating)]
-  return jp.all(jp.stack(leaves))
-
-
-# ---------------------------------------------------------------------- checkpoints
-class Checkpoints:
-  """Orbax checkpoints of the TrainState under RUN_DIR/checkpoints/<chunk>, written
-  atomically (orbax finalises a step only once complete), and the best evaluated one
-  under RUN_DIR/checkpoints/best/<chunk> (its scores in RUN_DIR/best.json). Restoring
-  falls back to the previous step, with a message, when the newest is corrupt or
-  partial."""
-
-  def __init__(self, run_dir: Path, save_replay: bool):
-    import orbax.checkpoint as ocp
-    self.ocp = ocp
-    self.dir = (run_dir / "checkpoints").resolve()
-    self.best_json = run_dir / "best.json"
-    self.save_replay = save_replay
-    options = lambda keep: ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
-    self.manager = ocp.CheckpointManager(self.dir, options=options(3))
-    self.best_manager = ocp.CheckpointManager(self.dir / "best", options=options(1))
-
-  def _payload(self, ts) -> dict:
-    """{"learner": LearnerState, "state": {index: array}}: the learner keeps its field
-    names (`mjxvine.export` finds `actor_params` there); the rest is flattened, because
-    orbax cannot store the zero-size arrays of MJX data."""
-    rest = ts.replace(learner=None, buffer=None if not self.save_replay else ts.buffer)
-    leaves = jax.tree.leaves(rest)
-    return {"learner": ts.learner,
-            "state": {f"{i:05d}": x for i, x in enumerate(leaves) if x.size > 0}}
-
-  def _unpayload(self, payload: dict, template):
-    rest = template.replace(learner=None,
-                            buffer=None if not self.save_replay else template.buffer)
-    leaves, treedef = jax.tree.flatten(rest)
-    leaves = [payload["state"].get(f"{i:05d}", x) for i, x in enumerate(leaves)]
-    ts = jax.tree.unflatten(treedef, leaves).replace(learner=payload["learner"])
-    return ts if self.save_replay else ts.replace(buffer=template.buffer)
-
-  def save(self, step: int, ts) -> None:
-    self.manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)))
-    self.manager.wait_until_finished()
-
-  def save_best(self, step: int, ts, scores: dict) -> None:
-    """Keeps `ts` as the best checkpoint, with its evaluation `scores`."""
-    self.best_manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)),
-                           force=True)
-    self.best_manager.wait_until_finished()
-    self.best_json.write_text(json.dumps({"chunk": step, **scores}))
-
-  def best_scores(self) -> dict | None:
-    """The scores of the best checkpoint so far (None before the first evaluation)."""
-    if not self.best_json.is_file() or self.best_manager.latest_step() is None:
-      return None
-    return json.loads(self.best_json.read_text())
-
-  def restore(self, template, best: bool = False):
-    """(step, TrainState) of the latest good checkpoint (or the best one), restored onto
-    `template` (a fresh TrainState of the same config), or None."""
-    manager = self.best_manager if best else self.manager
-    abstract = jax.tree.map(
-        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding),
-        self._payload(template))
-    for step in sorted(manager.all_steps(), reverse=True):
-      try:
-        payload = manager.restore(step, args=self.ocp.args.StandardRestore(abstract))
-      except Exception as e:  # noqa: BLE001 - any failure means this step is unusable
-        print(f"checkpoint {step} is corrupt or partial ({type(e).__name__}: "
-              f"{str(e).splitlines()[0][:120]}); trying the previous one", file=sys.stderr)
-        continue
-      return step, self._unpayload(payload, template)
-    return None
+  `env`: the config's vineyard (`env.training_env`) by default, or any `protocol.TrainEnv`
+  (e.g. `wrappers.brax_env(...)`)."""
+  key = compile_key(cfg)
+  return compiled(key, seeds, _default_env(key) if env is None else env)
 
 
 # ---------------------------------------------------------------------- logging
@@ -500,29 +214,6 @@ def plot_learning_curve(run_dir: Path) -> None:
 
 
 # ---------------------------------------------------------------------- the run
-def sweep_members(cfg: Config) -> list[dict]:
-  """The runs trained at once: every combination of `train.sweep`'s values, each with
-  `train.num_seeds` seeds. One dict per member: {"seed": i, "sac.learning_rate": ...}."""
-  grid = parse_sweep(cfg.train.sweep)
-  combos = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
-  return [{"seed": s, **combo} for combo in combos for s in range(cfg.train.num_seeds)]
-
-
-def init_members(cfg: Config, init_fn, members: list[dict]):
-  """The initial TrainState of every member (a leading members axis if more than one):
-  member seeds share keys across sweep values, so a sweep compares like with like."""
-  keys = jax.random.split(jax.random.PRNGKey(cfg.train.seed), cfg.train.num_seeds)
-  ts = init_fn(keys[np.array([m["seed"] for m in members])])
-  values = lambda k: (np.array([m[k] for m in members], np.float32)
-                      if k in members[0] else None)
-  lr, alpha = values("sac.learning_rate"), values("sac.alpha")
-  if lr is None and alpha is None:
-    return ts
-  learner = sac_lib.with_hyperparams(ts.learner, learning_rate=lr, alpha=alpha)
-  return ts.replace(learner=jax.device_put(learner, jax.tree.map(lambda x: x.sharding,
-                                                                  ts.learner)))
-
-
 def _say(quiet: bool):
   return (lambda *a, **k: None) if quiet else functools.partial(print, file=sys.stderr,
                                                                  flush=True)
@@ -536,6 +227,7 @@ def _score(scores: dict) -> tuple:
 
 
 def _last_row(run_dir: Path) -> dict:
+  """The last row of RUN_DIR/metrics.jsonl ({} if none): that of the last member."""
   lines = (run_dir / "metrics.jsonl").read_text().splitlines() \
       if (run_dir / "metrics.jsonl").is_file() else []
   return json.loads(lines[-1]) if lines else {}
@@ -543,9 +235,10 @@ def _last_row(run_dir: Path) -> dict:
 
 def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: bool = True,
           quiet: bool = False, env=None) -> dict:
-  """Trains (or resumes) a run; returns the final log row of member 0. Trains
+  """Trains (or resumes) a run; returns the final log row of member 0 (of a run found
+  complete on resume: the last row of its metrics.jsonl, `_last_row`). Trains
   `train.num_seeds` seeds times the `train.sweep` grid at once (vmap). `env` defaults to
-  the config's vineyard pool; another env (a `BraxAdapter`) trains the same way, without
+  the config's vineyard pool; another `protocol.TrainEnv` (e.g. `wrappers.brax_env(...)`) trains the same way, without
   the vineyard evaluations.
 
   With the vineyard env, every `train.eval_every_chunks` chunks and at the end (with
@@ -561,7 +254,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   seeds = len(members)
   vineyard = env is None
   if vineyard:
-    env = _default_env(_compile_key(cfg))
+    env = _default_env(compile_key(cfg))
   sac, init_fn, chunk_fn = compiled_trainer(cfg, seeds, env)
   ts = init_members(cfg, init_fn, members)
   nbytes = sac_lib.buffer_nbytes(ts.buffer)
@@ -595,7 +288,8 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   eval_key = jax.random.PRNGKey(cfg.train.seed + 1)  # the same starts at every evaluation
 
   def evaluate_starts(ts) -> list[dict]:
-    """Evaluates every member; keeps member 0's policy if it is the best so far."""
+    """Evaluates every member; saves the state of all members as checkpoints/best when
+    member 0's scores are the best so far."""
     t0 = time.time()
     out = start_eval(starts_params(ts.learner.actor_params, starts.ACTOR, seeds), eval_key)
     rows = [{f"eval_{k}": float(np.reshape(v, (-1,))[s]) for k, v in out.items()}
@@ -639,7 +333,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
             f"checkpoint is chunk {ckpt.manager.latest_step()} in {ckpt.dir}")
       chunk_index += 1
       host = jax.device_get((ts.env_steps, ts.episodes, ts.log_episodes, ts.log_return,
-                             ts.log_success, ts.log_timeout, ts.log_speed))
+                             ts.log_success, ts.log_timeout, ts.log_speed, ts.log_terms))
       evals = [{}] * seeds
       if start_eval is not None and ((every and chunk_index % every == 0) or
                                      chunk_index == total_chunks):
@@ -660,6 +354,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
             "wall": datetime.datetime.now().isoformat(timespec="seconds"),
             **evals[s],
         }
+        row.update({k: float(get(v)) / steps_per_chunk for k, v in host[7].items()})
         row.update({k: float(get(v)) for k, v in m.items() if k != "finite"})
         if s == 0:
           last_row = row
@@ -725,7 +420,7 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
     say(f"evaluating the best policy on the test world ({len(world.lanes) * 2 * runs} runs, "
         f"the paper's protocol; for information)...")
     doc = ev.evaluate(cfg, "checkpoint", world, runs=runs, noise_factor=cfg.eval.noise_factor,
-                      policy=_actor_policy(sac, actor))
+                      policy=policies.actor_policy(sac.nets, actor))
     doc["policy"] = f"{run_dir} (best checkpoint, seed 0)"
     ev.write_results(doc, world, run_dir / "eval")
     row["eval_test_success"] = doc["overall"]["success"]
@@ -735,13 +430,6 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
       (", then eval/trajectories.png and eval/results.md" if runs > 0 else "") +
       "; metrics.jsonl and tb/ (tensorboard --logdir) hold every chunk, checkpoints/ the "
       "last and best policies (python -m mjxvine.export --checkpoint " + f"{run_dir})")
-
-
-def _actor_policy(sac, actor_params):
-  def policy(state, key):
-    del key
-    return sac.act_deterministic(actor_params, state.obs)
-  return policy
 
 
 def main(argv=None) -> int:

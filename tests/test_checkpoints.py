@@ -1,14 +1,20 @@
-"""Which checkpoint of a run export/evaluate restore (best or last), from relative paths,
-and the one-line errors (exit status 2) of a run directory that is not there."""
+"""`mjxvine.checkpoint`: which checkpoint of a run export/evaluate restore (best or last),
+from relative paths, the one-line errors (exit status 2) of a run directory that is not
+there, and `Checkpoints` (save, best, restore, a corrupt step) read back as a policy."""
 
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
+import flax.struct
+import jax
+import jax.numpy as jp
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from mjxvine import evaluate, export, policies
+from mjxvine import checkpoint, evaluate, export, policies
+from mjxvine import networks as nw
 
 
 def _actor(step: int) -> dict:
@@ -20,7 +26,7 @@ def _actor(step: int) -> dict:
 
 
 def _save(directory, steps) -> None:
-  """CheckpointManager steps as `mjxvine.train.Checkpoints` writes them (item "default")."""
+  """CheckpointManager steps as `checkpoint.Checkpoints` writes them (item "default")."""
   manager = ocp.CheckpointManager(directory.resolve(),
                                   options=ocp.CheckpointManagerOptions(create=True))
   for step in steps:
@@ -46,24 +52,24 @@ def _step_of(actor) -> float:
 
 def test_checkpoint_item_best_and_last(runs):
   run, ckpts = runs / "run", runs / "run" / "checkpoints"
-  assert export.checkpoint_item(run) == ckpts / "best" / "4" / "default"
-  assert export.checkpoint_item(run, "last") == ckpts / "5" / "default"
-  assert export.checkpoint_item(ckpts) == ckpts / "best" / "4" / "default"
-  assert export.checkpoint_item(ckpts, "last") == ckpts / "5" / "default"
+  assert checkpoint.checkpoint_item(run) == ckpts / "best" / "4" / "default"
+  assert checkpoint.checkpoint_item(run, "last") == ckpts / "5" / "default"
+  assert checkpoint.checkpoint_item(ckpts) == ckpts / "best" / "4" / "default"
+  assert checkpoint.checkpoint_item(ckpts, "last") == ckpts / "5" / "default"
   # a step dir, an item dir: used as they are
-  assert export.checkpoint_item(ckpts / "3") == ckpts / "3" / "default"
-  assert export.checkpoint_item(ckpts / "3" / "default", "last") == ckpts / "3" / "default"
+  assert checkpoint.checkpoint_item(ckpts / "3") == ckpts / "3" / "default"
+  assert checkpoint.checkpoint_item(ckpts / "3" / "default", "last") == ckpts / "3" / "default"
   # without a best/ subtree, best falls back to the last step
   nobest = runs / "nobest" / "checkpoints"
-  assert export.checkpoint_item(runs / "nobest") == nobest / "3" / "default"
+  assert checkpoint.checkpoint_item(runs / "nobest") == nobest / "3" / "default"
   with pytest.raises(ValueError, match="which='newest'"):
-    export.checkpoint_item(run, "newest")
+    checkpoint.checkpoint_item(run, "newest")
 
 
-def test_load_actor_params_picks_the_step(runs):
-  actor, item = export.load_actor_params(runs / "run")
+def test_restore_actor_params_picks_the_step(runs):
+  actor, item = checkpoint.restore_actor_params(runs / "run")
   assert _step_of(actor) == 4.0 and item.parent.name == "4"
-  actor, _ = export.load_actor_params(runs / "run", which="last")
+  actor, _ = checkpoint.restore_actor_params(runs / "run", which="last")
   assert _step_of(actor) == 5.0
   assert set(actor) == {"tower", "dense0", "mean"}
   assert isinstance(actor["dense0"]["kernel"], np.ndarray)
@@ -71,9 +77,9 @@ def test_load_actor_params_picks_the_step(runs):
 
 def test_relative_paths(runs, monkeypatch, tmp_path, capsys):
   monkeypatch.chdir(runs)
-  item = export.checkpoint_item("run")
+  item = checkpoint.checkpoint_item("run")
   assert item.is_absolute() and item == runs / "run" / "checkpoints" / "best" / "4" / "default"
-  assert _step_of(export.load_actor_params("run", "last")[0]) == 5.0
+  assert _step_of(checkpoint.restore_actor_params("run", "last")[0]) == 5.0
   # evaluate's loader (through mjxvine.policies), as `evaluate --policy run`
   assert _step_of(policies.load_actor_params("run", env=None)) == 4.0
   assert evaluate.check_policy_file("run", "last") == Path("run")
@@ -109,4 +115,70 @@ def test_unfinished_steps_are_skipped(runs, tmp_path):
   shutil.copytree(runs / "nobest", run)
   (run / "checkpoints" / "7.orbax-checkpoint-tmp-1").mkdir()
   (run / "checkpoints" / "9").mkdir()  # no item inside
-  assert export.checkpoint_item(run, "last").parent.name == "3"
+  assert checkpoint.checkpoint_item(run, "last").parent.name == "3"
+
+
+# ----------------------------------------------------------------------------------------
+# `Checkpoints` (the trainer's writer) read back by the policy loaders, without training.
+
+class _State(flax.struct.PyTreeNode):
+  """The parts of a TrainState that `Checkpoints` treats apart."""
+  learner: dict
+  buffer: jax.Array    # stored only with save_replay
+  env_steps: jax.Array
+  empty: jax.Array     # zero-size (as in MJX data): never stored, taken from the template
+
+
+@pytest.fixture(scope="module")
+def tiny_actor():
+  """(networks, actor params, observation with a batch of 1) of a tiny depth actor."""
+  nets = nw.make_networks([0.0, -1.0], [0.5, 1.0], hidden=8, num_hidden=1, conv_features=2)
+  obs = {"depth": jp.full((1, 36, 36, 1), 2.0), "state": jp.zeros((1, 3))}
+  return nets, nw.init_params(nets, jax.random.PRNGKey(0), obs)[0], obs
+
+
+def _state(actor_params, step: int) -> _State:
+  return _State(learner={"actor_params": jax.tree.map(lambda x: x * step, actor_params),
+                         "log_alpha": jp.float32(step)},
+                buffer=jp.full(4, float(step)), env_steps=jp.int32(step), empty=jp.zeros(0))
+
+
+def test_checkpoints_save_restore_and_load_the_policy(tiny_actor, tmp_path, capsys):
+  nets, actor, obs = tiny_actor
+  ckpt = checkpoint.Checkpoints(tmp_path, save_replay=False)
+  assert ckpt.best_scores() is None and ckpt.restore(_state(actor, 0)) is None
+  for step in (1, 2, 3):
+    ckpt.save(step, _state(actor, step))
+  ckpt.save_best(2, _state(actor, 2), {"eval_mae_m": 0.1})
+  assert ckpt.best_scores() == {"chunk": 2, "eval_mae_m": 0.1}
+  template = _state(actor, 0)
+  for best, want in ((False, 3), (True, 2)):
+    step, ts = ckpt.restore(template, best=best)
+    assert step == want and int(ts.env_steps) == want and float(ts.learner["log_alpha"]) == want
+    assert float(ts.buffer[0]) == 0.0 and ts.empty.shape == (0,)  # the template's
+  # the loaders of export/evaluate read the same files: best, then last
+  for which, want in (("best", 2), ("last", 3)):
+    params, item = checkpoint.restore_actor_params(tmp_path, which)
+    assert item == checkpoint.checkpoint_item(tmp_path, which) and item.parent.name == str(want)
+    policy = policies.actor_policy(nets, jax.tree.map(jp.asarray, params))
+    scaled = jax.tree.map(lambda x: x * want, actor)
+    expected = nw.deterministic_action(nets.actor.apply({"params": scaled}, obs)[0],
+                                       nets.action_low, nets.action_high)
+    np.testing.assert_allclose(policy(SimpleNamespace(obs=obs), None), expected, atol=1e-6)
+  # the same closure as brax's Policy: (obs, key) -> (action, extras)
+  action, extras = policies.actor_policy(nets, actor, brax=True)(obs, None)
+  assert action.shape == (1, 2) and extras == {}
+  # a corrupt newest step: restore falls back to the previous one and says so
+  for f in (tmp_path / "checkpoints" / "3").rglob("*"):
+    if f.is_file() and f.stat().st_size > 0 and "ocdbt" not in f.name:
+      f.write_bytes(b"garbage")
+  step, _ = checkpoint.Checkpoints(tmp_path, save_replay=False).restore(template)
+  assert step == 2 and "checkpoint 3 is corrupt or partial" in capsys.readouterr().err
+  # ... and the policy loaders name it in one line
+  with pytest.raises(ValueError, match="3/default: not a readable orbax checkpoint"):
+    checkpoint.restore_actor_params(tmp_path, "last")
+  with pytest.raises(evaluate.PolicyError, match="not a readable orbax checkpoint"):
+    policies.load_actor_params(tmp_path, env=None, which="last")
+  assert export.main(["--checkpoint", str(tmp_path), "--which", "last"]) == 2
+  err = capsys.readouterr().err
+  assert "not a readable orbax checkpoint" in err and len(err.splitlines()) == 1

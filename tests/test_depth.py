@@ -20,8 +20,7 @@ from mjxvine.config import CameraConfig, Config, replace
 SMALL = CameraConfig(height=24, width=32)
 
 try:  # the real vineyards, once mjxvine.worlds is there
-  from mjxvine.worlds import build_model, generate_world
-  from mjxvine.bench import random_poses
+  from mjxvine.worlds import build_model, generate_world, random_poses
   HAVE_WORLDS = True
 except ImportError:  # pragma: no cover
   HAVE_WORLDS = False
@@ -310,7 +309,8 @@ def test_unsupported_geoms_raise():
 # ------------------------------------------------------------------ noise and storage
 
 def _spec_noise_std(d, k, sigma=0.2, clip=0.5, max_depth=5.0, n=2_000_000):
-  """Std of SPEC 4's noisy depth at true depth d, by numpy Monte Carlo."""
+  """Std of the noisy depth (docs/design.md, Camera and noise) at true depth d, by numpy
+  Monte Carlo."""
   rng = np.random.default_rng(0)
   n1 = np.clip(rng.normal(0, sigma, n), -clip, clip)
   n2 = np.clip(rng.normal(0, 1, n) * d / 10, -clip, clip)

@@ -10,6 +10,7 @@ import pytest
 
 from mjxvine import starts
 from mjxvine import train as train_mod
+from mjxvine.checkpoint import Checkpoints
 from mjxvine.config import load_config
 
 pytestmark = pytest.mark.slow  # minutes on 2 cores: `pytest -m slow` (CI runs it)
@@ -24,7 +25,7 @@ def test_sac_beats_random_and_straight_in_both_directions(tmp_path):
   assert row["env_steps"] == cfg.train.total_env_steps
   sac, init_fn, _ = train_mod.compiled_trainer(cfg)
   template = init_fn(jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
-  _, best = train_mod.Checkpoints(tmp_path, False).restore(template, best=True)
+  _, best = Checkpoints(tmp_path, False).restore(template, best=True)
   run = train_mod.start_evaluator(cfg)  # the run's own compiled evaluation
   key = jax.random.PRNGKey(11)  # other starts than the ones the best was chosen on
   success = {}

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from mjxvine import train as train_mod
+from mjxvine import trainer
+from mjxvine.checkpoint import Checkpoints
 from mjxvine.config import load_config
 
 OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=2", "env.max_steps=30",
@@ -95,7 +97,7 @@ def test_resume_with_replay_is_exact(tmp_path):
     runs[name] = run
   sac, init_fn, _ = train_mod.compiled_trainer(_cfg(80))
   template = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
-  (_, a), (_, b) = (train_mod.Checkpoints(runs[n], True).restore(template) for n in runs)
+  (_, a), (_, b) = (Checkpoints(runs[n], True).restore(template) for n in runs)
   assert int(a.env_steps) == int(b.env_steps) == 80
   for x, y in zip(jax.tree.leaves(a.learner), jax.tree.leaves(b.learner)):
     np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
@@ -117,7 +119,7 @@ def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
     return sac, init_fn, chunk
 
   monkeypatch.setattr(train_mod, "compiled_trainer", poisoned)
-  with pytest.raises(train_mod.NonFiniteError, match="non-finite parameters at env step 40"):
+  with pytest.raises(trainer.NonFiniteError, match="non-finite parameters at env step 40"):
     train_mod.train(_cfg(80), tmp_path / "nan", quiet=True, evaluate_at_end=False)
   # the checkpoint of the last good chunk is kept
   assert (tmp_path / "nan" / "checkpoints" / "1").is_dir()
@@ -152,7 +154,7 @@ def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   export.main(["--checkpoint", str(run), "--out", str(npz)])
   cfg = load_config(run / "config.yaml", ["world.test_length_m=8", "eval.max_steps=15"])
   world = generate_world("test", 0, cfg.world)
-  env = VineyardEnv(cfg, [world], auto_reset=False)
+  env = VineyardEnv(cfg, [world])
   from_run = policies.load_actor_params(run, env)
   from_npz = policies.load_actor_params(npz, env)
   for a, b in zip(jax.tree.leaves(from_run), jax.tree.leaves(from_npz)):

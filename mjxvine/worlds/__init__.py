@@ -1,8 +1,9 @@
-"""Procedural vineyards and robots as MuJoCo / MJX models (SPEC sections 2-3)."""
+"""Procedural vineyards and robots as MuJoCo / MJX models (docs/design.md, World layout;
+Robots)."""
 
 from mjxvine.worlds.batch import batch_models, take_world
 from mjxvine.worlds.build import (build_model, build_models, build_spec, plant_geom_ids,
-                                  plant_slots_for, terrain_height)
+                                  plant_slots_for, random_poses, terrain_height)
 from mjxvine.worlds.layout import (Lane, Vineyard, generate_world, load_world, save_world,
                                    world_extent)
 from mjxvine.worlds.robots import ROBOTS, RobotSpec, wheel_speeds
@@ -10,6 +11,7 @@ from mjxvine.worlds.store import load_test_world, make_world
 
 __all__ = [
     "Lane", "Vineyard", "generate_world", "load_world", "save_world", "world_extent",
-    "build_model", "build_models", "build_spec", "plant_slots_for", "plant_geom_ids", "terrain_height", "batch_models",
-    "take_world", "ROBOTS", "RobotSpec", "wheel_speeds", "load_test_world", "make_world",
+    "build_model", "build_models", "build_spec", "plant_slots_for", "plant_geom_ids",
+    "terrain_height", "random_poses", "batch_models", "take_world", "ROBOTS", "RobotSpec",
+    "wheel_speeds", "load_test_world", "make_world",
 ]

@@ -41,6 +41,29 @@ def terrain_height(world: Vineyard, x, y):
           t[i + 1, j] * (1 - fu) * fv + t[i + 1, j + 1] * fu * fv)
 
 
+def random_poses(model: mujoco.MjModel, world: Vineyard, n: int, seed: int = 0,
+                 tilt: float = 0.05) -> list[mujoco.MjData]:
+  """`n` host MjData of `model` (built from `world`) with the robot on random lanes and
+  points along them, alternate travel directions, yaw jitter +-0.4 rad and roll and pitch
+  uniform in +-`tilt` rad, after `mj_forward` (no physics: the robot hovers 2 cm above
+  the terrain at the largest wheel radius). Camera poses for depth tests and benchmarks."""
+  rng = np.random.default_rng(seed)
+  radius = max(r.wheel_radius for r in ROBOTS.values())
+  out = []
+  for i in range(n):
+    line = world.lanes[i % len(world.lanes)].centerline
+    x, y = line[rng.integers(len(line))]
+    yaw = rng.uniform(-0.4, 0.4) + (np.pi if i % 2 else 0.0)
+    d = mujoco.MjData(model)
+    quat = np.zeros(4)
+    mujoco.mju_euler2Quat(quat, np.array([*rng.uniform(-tilt, tilt, 2), yaw]), "xyz")
+    d.qpos[:3] = [x, y, float(terrain_height(world, x, y)) + radius + 0.02]
+    d.qpos[3:7] = quat
+    mujoco.mj_forward(model, d)
+    out.append(d)
+  return out
+
+
 SLOT_MULTIPLE = 16
 
 

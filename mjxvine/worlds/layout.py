@@ -1,4 +1,5 @@
-"""Procedural vineyard layouts (SPEC section 2): plant rows, lanes and terrain, in numpy.
+"""Procedural vineyard layouts (docs/design.md, World layout): plant rows, lanes and
+terrain, in numpy.
 
 Frame: rows run along +x from x = 0 to x = length; row j lies near y = j * inter_row,
 shifted so that the vineyard is centred on y = 0. A lane is the strip between two
@@ -94,7 +95,7 @@ def _row_offsets(kind: str, num_rows: int, length: float, amplitude: float):
   half-cosine rise to A at x = L; rows 4-5 curved, H(x) + A sin^2(pi x / L). Lane 3 (rows
   2-3) is then straight-then-curved, lanes 4-5 curved (wander ~A), lanes 1-2 straight, and
   no lane is ever narrower than the drawn inter-row distance. Each shape is smooth enough
-  for the fifth-order ground-truth fit of SPEC section 7.
+  for the fifth-order ground-truth fit (docs/design.md, Evaluation protocol).
   """
   def straight(x):
     return np.zeros_like(x)
@@ -211,9 +212,10 @@ def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
 
 
 def _centerline(plant_xy, plant_row, lane, length):
-  """Ground truth of a lane (SPEC section 7): midpoints of its two plant rows (each row
-  linearly interpolated over x, so gaps are bridged), fitted with a fifth-order polynomial
-  y(x). Returns (centerline (K, 2), eor_forward (2,), eor_reverse (2,))."""
+  """Ground truth of a lane (docs/design.md, Evaluation protocol): midpoints of its two
+  plant rows (each row linearly interpolated over x, so gaps are bridged), fitted with a
+  fifth-order polynomial y(x). Returns (centerline (K, 2), eor_forward (2,),
+  eor_reverse (2,))."""
   xc = np.linspace(0.0, length, int(round(length / CENTERLINE_STEP_M)) + 1)
   ys = []
   for j in (lane - 1, lane):

@@ -1,39 +1,15 @@
-"""Robot models (SPEC section 3): Jackal and Husky as a free-joint chassis on four driven
-sphere wheels, with the depth camera at the SPEC's mount. Lengths in metres, masses in kg."""
+"""Robot models (docs/design.md, Robots): Jackal and Husky as a free-joint chassis on four
+driven sphere wheels, with the depth camera at the paper's mount. Lengths in metres, masses
+in kg. The robots' dimensions (`RobotSpec`, `ROBOTS`) live in `mjxvine.config`, which
+validates configs against them; they are re-exported here."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import mujoco
 
+from mjxvine.config import ROBOTS, RobotSpec
 
-@dataclasses.dataclass(frozen=True)
-class RobotSpec:
-  name: str
-  length: float        # footprint L (x)
-  width: float         # footprint W (y)
-  height: float        # H, ground to top
-  chassis_mass: float
-  wheel_mass: float
-  wheel_radius: float
-  track: float         # distance between left and right wheel centres
-  wheelbase: float     # distance between front and rear axles
-  camera_ahead: float  # camera optical centre ahead of the base centre
-  camera_height: float  # camera optical centre above the ground
-  track_slip: float    # skid-steer expanded-track factor chi: w = (v_r - v_l) / (chi * track)
-
-  @property
-  def mass(self) -> float:
-    return self.chassis_mass + 4 * self.wheel_mass
-
-
-ROBOTS = {
-    "jackal": RobotSpec("jackal", 0.508, 0.430, 0.250, 16.5, 0.477, 0.098, 0.376, 0.262,
-                        0.21, 0.26, 1.8),
-    "husky": RobotSpec("husky", 0.990, 0.670, 0.390, 46.0, 2.64, 0.1651, 0.571, 0.512,
-                       0.445, 0.40, 3.5),
-}
+__all__ = ["ROBOTS", "RobotSpec", "WHEEL_SIDES", "add_robot", "wheel_speeds"]
 
 # Wheel order of the actuators: front-left, rear-left, front-right, rear-right.
 WHEEL_SIDES = (1, 1, -1, -1)  # +1 left, -1 right

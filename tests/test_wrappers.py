@@ -1,4 +1,4 @@
-"""The trainer is not vineyard-specific: through `BraxAdapter` it trains a brax `Env` with
+"""The trainer is not vineyard-specific: through `wrappers.brax_env` it trains a brax `Env` with
 vector observations (a small point-mass task here; brax's own envs work the same way but
 take ~40 s to compile on 2 CPU cores)."""
 
@@ -10,8 +10,9 @@ import numpy as np
 from brax.envs.base import Env, State
 
 from mjxvine import train as train_mod
-from mjxvine.brax_adapter import BraxAdapter
+from mjxvine.wrappers import brax_env
 from mjxvine.config import load_config
+from mjxvine.protocol import TIMEOUT
 
 
 class PointToTarget(Env):
@@ -39,8 +40,8 @@ class PointToTarget(Env):
     return "jax"
 
 
-def test_adapter_truncates_and_resets():
-  env = BraxAdapter(PointToTarget(), episode_length=3)
+def test_brax_env_truncates_and_resets():
+  env = brax_env(PointToTarget(), episode_length=3)
   s = env.reset_batch(jax.random.PRNGKey(0), 2)
   step = jax.jit(env.step_batch)
   x0 = np.asarray(s.obs)
@@ -50,6 +51,9 @@ def test_adapter_truncates_and_resets():
   np.testing.assert_allclose(final, np.minimum(x0 + 0.6, x0 + 0.6), atol=1e-6)
   assert not np.allclose(s.obs, final)  # reset to a new start
   assert np.all(s.info["steps"] == 0) and np.all(s.info["last_return"] < 0)
+  assert np.all(s.info["last_outcome"] == TIMEOUT) and np.all(s.info["episodes"] == 1)
+  s, _ = step(s, jp.ones((2, 1)))
+  assert np.all(s.done == 0) and np.all(s.info["steps"] == 1)
 
 
 def test_sac_trainer_learns_a_brax_env(tmp_path):
@@ -58,7 +62,7 @@ def test_sac_trainer_learns_a_brax_env(tmp_path):
       "sac.hidden=64", "sac.eps_start=0.0", "sac.grad_steps_per_iter=2",
       "sac.learning_rate=0.001", "train.iters_per_chunk=50", "train.total_env_steps=6000",
       "train.checkpoint_every_chunks=100"])
-  env = BraxAdapter(PointToTarget(), episode_length=20)
+  env = brax_env(PointToTarget(), episode_length=20)
   train_mod.train(cfg, tmp_path, quiet=True, env=env)
   rows = [json.loads(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
   first, last = rows[0]["return_mean"], rows[-1]["return_mean"]

@@ -1,0 +1,189 @@
+"""A run's orbax checkpoints: the one owner of their layout, writing and reading.
+
+    RUN_DIR/checkpoints/<chunk>/default/        the last 3 TrainStates (`Checkpoints.save`)
+    RUN_DIR/checkpoints/best/<chunk>/default/   the best evaluated one (`Checkpoints.save_best`)
+    RUN_DIR/best.json                           its evaluation scores
+
+`Checkpoints` writes them and restores a whole TrainState (the trainer's resume);
+`checkpoint_item` picks the step a run's "best" or "last" policy is read from and
+`restore_actor_params` reads its actor params without a template (`mjxvine.export`,
+`mjxvine.policies`, `mjxvine.evaluate`).
+
+jax and orbax are imported where they are used, so that the export CLI's .npz -> ONNX
+conversion and evaluate's argument checks do not load them.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+WHICH = ("best", "last")  # which checkpoint of a run: see `checkpoint_item`
+
+
+class Checkpoints:
+  """Orbax checkpoints of the TrainState under RUN_DIR/checkpoints/<chunk>, written
+  atomically (orbax finalises a step only once complete), and the best evaluated one
+  under RUN_DIR/checkpoints/best/<chunk> (its scores in RUN_DIR/best.json). Restoring
+  falls back to the previous step, with a message, when the newest is corrupt or
+  partial."""
+
+  def __init__(self, run_dir: Path, save_replay: bool):
+    import orbax.checkpoint as ocp
+    self.ocp = ocp
+    self.dir = (run_dir / "checkpoints").resolve()
+    self.best_json = run_dir / "best.json"
+    self.save_replay = save_replay
+    options = lambda keep: ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
+    self.manager = ocp.CheckpointManager(self.dir, options=options(3))
+    self.best_manager = ocp.CheckpointManager(self.dir / "best", options=options(1))
+
+  def _payload(self, ts) -> dict:
+    """{"learner": LearnerState, "state": {index: array}}: the learner keeps its field
+    names (`restore_actor_params` finds `actor_params` there); the rest is flattened,
+    because orbax cannot store the zero-size arrays of MJX data."""
+    import jax
+    rest = ts.replace(learner=None, buffer=None if not self.save_replay else ts.buffer)
+    leaves = jax.tree.leaves(rest)
+    return {"learner": ts.learner,
+            "state": {f"{i:05d}": x for i, x in enumerate(leaves) if x.size > 0}}
+
+  def _unpayload(self, payload: dict, template):
+    import jax
+    rest = template.replace(learner=None,
+                            buffer=None if not self.save_replay else template.buffer)
+    leaves, treedef = jax.tree.flatten(rest)
+    leaves = [payload["state"].get(f"{i:05d}", x) for i, x in enumerate(leaves)]
+    ts = jax.tree.unflatten(treedef, leaves).replace(learner=payload["learner"])
+    return ts if self.save_replay else ts.replace(buffer=template.buffer)
+
+  def save(self, step: int, ts) -> None:
+    self.manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)))
+    self.manager.wait_until_finished()
+
+  def save_best(self, step: int, ts, scores: dict) -> None:
+    """Keeps `ts` as the best checkpoint, with its evaluation `scores`."""
+    self.best_manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)),
+                           force=True)
+    self.best_manager.wait_until_finished()
+    self.best_json.write_text(json.dumps({"chunk": step, **scores}))
+
+  def best_scores(self) -> dict | None:
+    """The scores of the best checkpoint so far (None before the first evaluation)."""
+    if not self.best_json.is_file() or self.best_manager.latest_step() is None:
+      return None
+    return json.loads(self.best_json.read_text())
+
+  def restore(self, template, best: bool = False):
+    """(step, TrainState) of the latest good checkpoint (or the best one), restored onto
+    `template` (a fresh TrainState of the same config), or None."""
+    import jax
+    manager = self.best_manager if best else self.manager
+    abstract = jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding),
+        self._payload(template))
+    for step in sorted(manager.all_steps(), reverse=True):
+      try:
+        payload = manager.restore(step, args=self.ocp.args.StandardRestore(abstract))
+      except Exception as e:  # noqa: BLE001 - any failure means this step is unusable
+        print(f"checkpoint {step} is corrupt or partial ({type(e).__name__}: "
+              f"{str(e).splitlines()[0][:120]}); trying the previous one", file=sys.stderr)
+        continue
+      return step, self._unpayload(payload, template)
+    return None
+
+
+def _item_of(step: Path) -> Path | None:
+  """The orbax item dir of a step dir: itself when it holds _METADATA, else its item
+  subdir ("default" for a CheckpointManager step); None when there is none."""
+  if (step / "_METADATA").is_file():
+    return step
+  items = sorted(p for p in step.iterdir() if (p / "_METADATA").is_file()) if step.is_dir() else []
+  return next((p for p in items if p.name == "default"), items[0] if items else None)
+
+
+def _steps(manager: Path) -> dict[int, Path]:
+  """{step: item dir} of the finished steps of a CheckpointManager dir (numeric subdirs;
+  orbax writes a step under a temporary name and renames it once complete)."""
+  if not manager.is_dir():
+    return {}
+  found = {int(p.name): _item_of(p) for p in manager.iterdir() if p.name.isdigit()}
+  return {step: item for step, item in found.items() if item is not None}
+
+
+def checkpoint_item(path: str | Path, which: str = "best") -> Path:
+  """The absolute orbax item dir to restore from a run dir, its `checkpoints` dir (or
+  `checkpoints/best`), a step dir or an item dir (one holding _METADATA: used as is).
+
+  which="best": the highest step under checkpoints/best/, else the last regular step;
+  which="last": the highest step directly under checkpoints/ (never best/). The path is
+  made absolute (orbax refuses relative ones). FileNotFoundError "no such run directory:
+  PATH" when `path` does not exist, and one naming `path` when it holds no checkpoint.
+  """
+  if which not in WHICH:
+    raise ValueError(f"which={which!r}: expected one of {', '.join(WHICH)}")
+  given = Path(path)
+  path = given.expanduser().resolve()
+  if not path.exists():
+    raise FileNotFoundError(f"no such run directory: {given}")
+  item = _item_of(path)
+  if item is not None:
+    return item
+  root = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+  steps = (_steps(root / "best") if which == "best" else {}) or _steps(root)
+  if not steps:
+    raise FileNotFoundError(f"{given}: no orbax checkpoint inside (no checkpoints/<step>/ "
+                            "with a _METADATA file)")
+  return steps[max(steps)]
+
+
+def run_dir_of(item: Path) -> Path | None:
+  """The run dir of a checkpoint item (the parent of its `checkpoints` dir), or None."""
+  return next((p.parent for p in item.parents if p.name == "checkpoints"), None)
+
+
+def _find_key(tree: Any, key: str) -> Any:
+  """The first value under `key` in a nested dict (breadth first), or None."""
+  level = [tree]
+  while level:
+    nxt = []
+    for node in level:
+      if isinstance(node, dict):
+        if key in node:
+          return node[key]
+        nxt.extend(node.values())
+    level = nxt
+  return None
+
+
+def restore_actor_params(path: str | Path, which: str = "best") -> tuple[Any, Path]:
+  """(actor params, item dir) of the checkpoint that `checkpoint_item(path, which)` picks.
+
+  The params are the actor's flax "params" dict of numpy arrays, as saved (a leading
+  seeds axis when the run trained several members). No TrainState template is needed:
+  the tree comes from the checkpoint's own metadata. Raises FileNotFoundError (see
+  `checkpoint_item`), ValueError (a damaged checkpoint) and KeyError (no `actor_params`
+  entry).
+  """
+  import jax
+  import orbax.checkpoint as ocp
+
+  item = checkpoint_item(path, which)
+  ckpt = ocp.PyTreeCheckpointer()
+  try:
+    tree_meta = ckpt.metadata(item).item_metadata
+    tree_meta = getattr(tree_meta, "tree", tree_meta)
+    restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree_meta)
+    tree = ckpt.restore(item, args=ocp.args.PyTreeRestore(restore_args=restore_args))
+  except Exception as e:  # noqa: BLE001 - orbax fails in many ways on damaged files
+    first = (str(e).splitlines() or [""])[0][:120]
+    raise ValueError(f"{item}: not a readable orbax checkpoint ({type(e).__name__}: "
+                     f"{first})") from None
+  actor = _find_key(tree, "actor_params")
+  if actor is None:
+    raise KeyError(f"{item}: the checkpoint has no 'actor_params' entry")
+  return actor, item

@@ -1,0 +1,280 @@
+"""The trainer: SAC on any batched env (`mjxvine.protocol.TrainEnv`), as pure functions.
+
+`make_trainer(cfg, env)` builds `init(key) -> TrainState` and `chunk(TrainState) ->
+(TrainState, metrics)`: one training iteration (N env steps with exploration, one replay
+insert, G gradient steps once `learning`) is one jit-compiled function, and a chunk is
+`train.iters_per_chunk` of them under `lax.scan` (on the CPU backend a host loop of the
+jitted pieces, see `scan_chunks`). `compiled(cfg, seeds, env)` jits them once per process,
+vmapped over the members of a multi-seed or sweep run (`sweep_members`, `init_members`),
+with envs and replay split over the devices (`mjxvine.parallel`). The run around it (CLI,
+logs, plots, checkpoints, evaluations, resume) is `mjxvine.train`.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import sys
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jp
+import numpy as np
+
+from mjxvine import networks as nw
+from mjxvine import parallel
+from mjxvine import sac as sac_lib
+from mjxvine.config import Config, depth_input_scale, parse_sweep, replace
+from mjxvine.protocol import PHYSICS, REWARD_PREFIX, SUCCESS, TIMEOUT
+
+
+class TrainState(flax.struct.PyTreeNode):
+  """Everything a run carries from one iteration to the next (one seed)."""
+  learner: sac_lib.LearnerState
+  buffer: sac_lib.ReplayBuffer
+  env_state: Any
+  key: jax.Array
+  env_steps: jax.Array    # () int32, summed over envs
+  episodes: jax.Array     # () int32 finished episodes
+  budget: jax.Array       # () float32 train.total_env_steps, for the epsilon schedule
+  # Sums since the last log (reset by the host): finished episodes, their returns,
+  # successes and time-outs; commanded speed (m/s) and the env's named reward terms
+  # ({"reward/heading": ...}, unscaled) summed over every env step.
+  log_episodes: jax.Array
+  log_return: jax.Array
+  log_success: jax.Array
+  log_timeout: jax.Array
+  log_speed: jax.Array
+  log_terms: dict
+
+  def reset_log(self) -> "TrainState":
+    zero = jp.zeros_like
+    return self.replace(log_episodes=zero(self.log_episodes), log_return=zero(self.log_return),
+                        log_success=zero(self.log_success), log_timeout=zero(self.log_timeout),
+                        log_speed=zero(self.log_speed),
+                        log_terms=jax.tree.map(zero, self.log_terms))
+
+
+def learning(cfg: Config, env_steps, rows_written):
+  """Whether the iteration that starts at `env_steps` (summed over envs), after its insert
+  brought the replay to `rows_written` rows, takes gradient steps: past the warm-up, with
+  a full batch sampleable. The one rule of the device (traced) and host (ints) paths."""
+  n = cfg.env.num_envs
+  sampleable = (jp.minimum(rows_written, cfg.sac.buffer_size // n) - 1) * n
+  return (env_steps + n >= cfg.sac.warmup_steps) & (sampleable >= cfg.sac.batch_size)
+
+
+class NonFiniteError(RuntimeError):
+  """A loss or a parameter became NaN or infinite."""
+
+
+def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
+  """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
+  collect, learn_step, summarize): a chunk is `train.iters_per_chunk` iterations, each
+  `collect` (env step, replay insert) then, once `learning`, G = sac.grad_steps_per_iter
+  `learn_step`s; `chunk` runs them on device, the host path calls the pieces.
+  `shard_batch`: see `mjxvine.sac.make_sac` (data parallelism over devices)."""
+  n = cfg.env.num_envs
+  # The action box comes from the env: the vineyard's [0, v_max] x [-w_max, w_max], or
+  # [-1, 1] for a brax env behind `wrappers.brax_env`.
+  nets = nw.make_networks(env.action_low, env.action_high, hidden=cfg.sac.hidden,
+                          conv_features=cfg.sac.conv_features,
+                          depth_scale=depth_input_scale(cfg),
+                          log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
+                          compute_dtype=cfg.sac.compute_dtype)
+  sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch)
+  warmup = cfg.sac.warmup_steps
+
+  def init(key: jax.Array) -> TrainState:
+    k_env, k_learner, k_run = jax.random.split(key, 3)
+    env_state = env.reset_batch(k_env, n)
+    learner = sac.init(k_learner, env_state.obs)
+    buffer = sac_lib.init_buffer(env_state.obs, env.action_size, cfg.sac.buffer_size,
+                                 cfg.camera.max_depth_m,
+                                 depth_dtype=jp.dtype(cfg.sac.replay_depth_dtype))
+    z, zf = jp.zeros((), jp.int32), jp.zeros((), jp.float32)
+    return TrainState(learner=learner, buffer=buffer, env_state=env_state, key=k_run,
+                      env_steps=z, episodes=z, budget=zf, log_episodes=z, log_return=zf,
+                      log_success=z, log_timeout=z, log_speed=zf,
+                      log_terms={k: zf for k in _reward_terms(env_state)})
+
+  def collect(ts: TrainState):
+    """One env step of the N envs with exploration, inserted into the replay. Returns the
+    new state, the key of this iteration's gradient steps and whether they are due."""
+    key, k_act, k_explore, k_update = jax.random.split(ts.key, 4)
+    obs = ts.env_state.obs
+    policy_action = sac.act(ts.learner.actor_params, obs, k_act)
+    in_warmup = ts.env_steps < warmup
+    eps = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
+    action = sac_lib.explore_action(k_explore, policy_action, eps, env.action_low,
+                                    env.action_high, in_warmup)
+    env_state, final_obs = env.step_batch(ts.env_state, action)
+    done = env_state.done > 0
+    truncated = done & (env_state.info["truncation"] > 0)
+    outcome = env_state.info["last_outcome"]
+    # A physics reset's successor is the restored old state: nothing to learn from.
+    weight = jp.where(done & (outcome == PHYSICS), 0.0, 1.0)
+    tr = sac_lib.Transition(obs=obs, action=action,
+                            reward=env_state.reward * cfg.sac.reward_scale,
+                            terminal=(done & ~truncated).astype(jp.float32),
+                            truncated=truncated.astype(jp.float32), next_obs=final_obs,
+                            weight=weight)
+    buffer = sac_lib.insert(ts.buffer, tr)
+    learn = learning(cfg, ts.env_steps, buffer.rows_written)
+    ts = ts.replace(
+        buffer=buffer, env_state=env_state, key=key,
+        env_steps=ts.env_steps + n, episodes=ts.episodes + done.sum(),
+        log_episodes=ts.log_episodes + done.sum(),
+        log_return=ts.log_return + jp.sum(jp.where(done, env_state.info["last_return"], 0.0)),
+        log_success=ts.log_success + jp.sum(done & (outcome == SUCCESS)),
+        log_timeout=ts.log_timeout + jp.sum(done & (outcome == TIMEOUT)),
+        log_speed=ts.log_speed + jp.sum(action[:, 0]),
+        log_terms={k: v + jp.sum(env_state.metrics[k]) for k, v in ts.log_terms.items()})
+    return ts, k_update, learn
+
+  def learn_step(ts: TrainState, key: jax.Array):
+    """One gradient step on a replay batch: `key` is one of split(k_update, G)."""
+    learner, metrics = sac.update_from(ts.learner, ts.buffer, key)
+    return ts.replace(learner=learner), metrics
+
+  def iteration(ts: TrainState, _):
+    """collect, then G gradient steps if due (lax.cond): the device path."""
+    ts, k_update, learn = collect(ts)
+    learner, metrics = jax.lax.cond(
+        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update),
+        lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
+    metrics["learning"] = learn.astype(jp.float32)
+    return ts.replace(learner=learner), metrics
+
+  def summarize(ts: TrainState, metrics: dict):
+    """Chunk metrics: losses averaged over the iterations that learned."""
+    metrics = dict(metrics)
+    learning = metrics.pop("learning")
+    w = learning / jp.maximum(learning.sum(), 1.0)
+    out = {k: jp.sum(v * w) for k, v in metrics.items()}
+    out["eps"] = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
+    out["alpha"] = jp.exp(ts.learner.log_alpha)
+    out["finite"] = _all_finite(ts.learner)
+    return ts, out
+
+  def chunk(ts: TrainState):
+    return summarize(*jax.lax.scan(iteration, ts, None, cfg.train.iters_per_chunk))
+
+  return sac, init, chunk, collect, learn_step, summarize
+
+
+def scan_chunks(cfg: Config) -> bool:
+  """Whether a chunk runs as one `lax.scan` program. On XLA's CPU backend convolutions
+  inside a loop run ~20-100x slower (jax-ml/jax#12868), so there the host loops over the
+  jitted iteration instead; accelerators scan."""
+  if cfg.train.chunk_loop == "auto":
+    return jax.default_backend() != "cpu"
+  return cfg.train.chunk_loop == "scan"
+
+
+@functools.lru_cache(maxsize=4)
+def compiled(cfg: Config, seeds: int, env):
+  mesh = parallel.make_mesh(cfg.train.devices)
+  parallel.check_divisible(mesh, cfg.env.num_envs, cfg.sac.batch_size)
+  sac, init, chunk, collect, learn_step, summarize = make_trainer(
+      cfg, env, parallel.batch_constraint(mesh, seeds))
+  batch = (lambda f: f) if seeds == 1 else jax.vmap
+  init_one = (lambda k: init(k[0])) if seeds == 1 else jax.vmap(init)
+  keys = jax.ShapeDtypeStruct((seeds, 2), jp.uint32)
+  abstract = jax.eval_shape(init_one, keys)
+  shard = parallel.train_state_sharding(abstract, mesh, seeds)
+  init_fn = jax.jit(init_one, out_shardings=shard)
+  # Donating the state lets XLA update the replay buffer in place instead of copying it;
+  # pinning its sharding keeps envs and replay rows on their devices between calls.
+  jit_state = lambda f, outs: jax.jit(f, donate_argnums=0, out_shardings=(shard, *outs))
+  if scan_chunks(cfg):
+    return sac, init_fn, jit_state(batch(chunk), (None,))
+  # The host path: the env step and one gradient step are separate programs, so each is
+  # compiled once, and the G gradient steps are G calls (no convolutions in a loop body).
+  collect_fn = jit_state(batch(collect), (None, None))
+  learn_fn = jit_state(batch(learn_step), (None,))
+  g = cfg.sac.grad_steps_per_iter
+  split_fn = jax.jit(batch(lambda k: jax.random.split(k, g)))
+  summarize_fn = jax.jit(batch(summarize))
+  lead = () if seeds == 1 else (seeds,)
+  metric_shapes = jax.eval_shape(batch(learn_step), abstract,
+                                 jax.ShapeDtypeStruct(lead + (2,), jp.uint32))[1]
+  idle = {k: jp.zeros(v.shape, v.dtype) for k, v in metric_shapes.items()}
+  idle["learning"] = jp.zeros(lead)
+  n = cfg.env.num_envs
+  learned = False  # whether the gradient step has been compiled (said once)
+
+  def host_chunk(ts):
+    nonlocal learned
+    rows = []
+    steps, written = (int(np.max(x)) for x in jax.device_get((ts.env_steps,
+                                                              ts.buffer.rows_written)))
+    for _ in range(cfg.train.iters_per_chunk):
+      written += 1
+      learn = bool(learning(cfg, steps, written))
+      ts, k_update, _ = collect_fn(ts)
+      steps += n
+      if not learn:
+        rows.append(idle)
+        continue
+      if not learned:
+        learned = True
+        print(f"learning starts at env step {steps - n}: compiling the gradient step...",
+              file=sys.stderr, flush=True)
+      keys = split_fn(k_update)
+      for i in range(g):
+        ts, m = learn_fn(ts, keys[i] if seeds == 1 else keys[:, i])
+        rows.append({**m, "learning": jp.ones(lead)})
+    # iterations axis after the seeds axis, if any
+    stacked = jax.tree.map(lambda *x: jp.stack(x, axis=0 if seeds == 1 else 1), *rows)
+    return summarize_fn(ts, stacked)
+
+  return sac, init_fn, host_chunk
+
+
+def compile_key(cfg: Config) -> Config:
+  """`cfg` without the fields that do not shape the compiled program."""
+  return replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
+                             "save_replay": False, "sweep": "", "num_seeds": 1,
+                             "max_minutes": 0.0, "eval_every_chunks": 0, "eval_starts": 1},
+                 eval={"runs_after_train": 0})
+
+
+def _reward_terms(env_state) -> list[str]:
+  """The env's named reward terms ("reward/<term>" metrics), if it has any."""
+  return sorted(k for k in env_state.metrics if k.startswith(REWARD_PREFIX))
+
+
+def _zero_metrics(sac, learner, buffer, key):
+  shapes = jax.eval_shape(lambda: sac.update_many(learner, buffer, key)[1])
+  return jax.tree.map(lambda s: jp.zeros(s.shape, s.dtype), shapes)
+
+
+def _all_finite(tree) -> jax.Array:
+  leaves = [jp.all(jp.isfinite(x)) for x in jax.tree.leaves(tree)
+            if jp.issubdtype(x.dtype, jp.floating)]
+  return jp.all(jp.stack(leaves))
+
+
+def sweep_members(cfg: Config) -> list[dict]:
+  """The runs trained at once: every combination of `train.sweep`'s values, each with
+  `train.num_seeds` seeds. One dict per member: {"seed": i, "sac.learning_rate": ...}."""
+  grid = parse_sweep(cfg.train.sweep)
+  combos = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
+  return [{"seed": s, **combo} for combo in combos for s in range(cfg.train.num_seeds)]
+
+
+def init_members(cfg: Config, init_fn, members: list[dict]):
+  """The initial TrainState of every member (a leading members axis if more than one):
+  member seeds share keys across sweep values, so a sweep compares like with like."""
+  keys = jax.random.split(jax.random.PRNGKey(cfg.train.seed), cfg.train.num_seeds)
+  ts = init_fn(keys[np.array([m["seed"] for m in members])])
+  values = lambda k: (np.array([m[k] for m in members], np.float32)
+                      if k in members[0] else None)
+  lr, alpha = values("sac.learning_rate"), values("sac.alpha")
+  if lr is None and alpha is None:
+    return ts
+  learner = sac_lib.with_hyperparams(ts.learner, learning_rate=lr, alpha=alpha)
+  return ts.replace(learner=jax.device_put(learner, jax.tree.map(lambda x: x.sharding,
+                                                                  ts.learner)))
