@@ -23,7 +23,7 @@ Sub-commands
   and 64x64, compile time apart, agreement with `mujoco.mj_multiRay` on one image, and
   the ratio against the naive baseline (`mjx.ray` vmapped over every pixel; it ignores
   heightfields and cylinders in MJX 3.x, so it renders less than we do). On CPU, batches
-  above 16 are also timed in chunks of 16 (`depth.render_depth_batch`). Each row gives
+  above 16 are also timed in `lax.map` chunks of 16. Each row gives
   wall-clock images/s and CPU ms per image (all threads): on a shared machine the latter
   is the steadier number.
 - deploy: single-decision latency (median, p99 over 1,000 calls) of the exported actor
@@ -239,7 +239,8 @@ def bench_depth(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
       # The model is closed over (batch-constant) and only the pose-dependent arrays of
       # mjx.Data are passed, so that the host-side pytree handling of a full mjx.Data
       # does not enter the timing (inside a training step it does not exist either).
-      # chunk: lax.map over chunks, as depth.render_depth_batch does.
+      # chunk: lax.map over chunks of that many images (on a CPU XLA's intermediates
+      # then stay in cache).
       def one(*xs):
         return fn(mx, template.replace(**dict(zip(fields, xs))))
       if chunk is None:
@@ -274,7 +275,7 @@ def bench_depth(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
       if b > args.chunk > 0:
         r = time_call(vmapped(partial(depth.render_depth, cam), args.chunk), *batch(b),
                       min_time=args.min_time)
-        rows.append(dict(size=f"{h}x{w}", impl=f"render_depth_batch(chunk={args.chunk})",
+        rows.append(dict(size=f"{h}x{w}", impl=f"render_depth, lax.map chunks of {args.chunk}",
                          batch=b, images_per_s=b / r["call_s"],
                          ms_per_image=1e3 * r["call_s"] / b,
                          cpu_ms_per_image=1e3 * r["cpu_s"] / b, compile_s=r["compile_s"]))

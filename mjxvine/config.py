@@ -441,6 +441,12 @@ def action_box(cfg: Config) -> tuple[list[float], list[float]]:
   return [cfg.env.v_min, -cfg.env.w_max], [cfg.env.v_max, cfg.env.w_max]
 
 
+def changed_keys(a: Config, b: Config) -> list[str]:
+  """The "section.key" names whose values differ between two configs."""
+  return [f"{s.name}.{k}" for s in dataclasses.fields(Config)
+          for k, v in vars(getattr(b, s.name)).items() if getattr(getattr(a, s.name), k) != v]
+
+
 def replace(cfg: Config, **sections: dict) -> Config:
   """Returns `cfg` with fields of sections replaced, e.g. replace(cfg, env={"num_envs": 4})."""
   return dataclasses.replace(
@@ -452,5 +458,6 @@ __all__ = [
     "SACConfig", "TrainConfig", "EvalConfig", "load_config", "to_dict", "to_yaml",
     "config_hash", "add_config_args", "config_from_args", "replace", "RobotSpec", "ROBOTS",
     "ROBOT_NAMES", "SWEEPABLE", "parse_sweep", "enable_compile_cache", "action_box",
+    "changed_keys",
     "depth_input_scale",
 ]

@@ -7,8 +7,7 @@ function vmaps with `in_axes=(model_axes, 0)`) and `d` an `mjx.Data` after `mjx.
 or `mjx.step` (it reads `cam_xpos`, `cam_xmat`, `geom_xpos`, `geom_xmat`). Everything
 static (geom ids, pixel rays, sizes of work arrays) lives in a `DepthCamera`, built once
 from the host `mujoco.MjModel` by `DepthCamera.create(mj_model, camera_cfg)`.
-`render_depth_batch` renders a batch in chunks (faster on CPU), `add_noise` applies the
-sensor noise model, `reference_depth` is the same image by MuJoCo's C `mj_multiRay`.
+`add_noise` applies the sensor noise model, `reference_depth` is the same image by MuJoCo's C `mj_multiRay`.
 
 Conventions
 - Pixel (r, c): r = 0 is the top row, c = 0 the leftmost column. Its ray passes through the
@@ -68,7 +67,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from functools import partial
 from typing import Any
 
 import jax
@@ -470,42 +468,13 @@ def render_depth(cam: DepthCamera, m: mjx.Model, d: mjx.Data) -> jax.Array:
   return render_depth_info(cam, m, d)[0]
 
 
-def render_depth_batch(cam: DepthCamera, m: mjx.Model, d: mjx.Data, model_axes: Any = None,
-                       chunk: int | None = 16) -> jax.Array:
-  """Noise-free images (B, H, W) of a batch: `d` with a leading batch axis B and `m`
-  either shared (model_axes None) or batched as `model_axes` (0 / None per leaf, as from
-  `worlds.batch_models`).
-
-  Renders `chunk` images at a time (`lax.map`): on CPU this keeps XLA's intermediates
-  in cache, which measured faster per image than one vmap over large batches (`python -m
-  mjxvine.bench depth`); chunk=None is one plain vmap (the choice on a GPU).
-  """
-  if model_axes is None:
-    model_axes = jax.tree.map(lambda _: None, m)
-  is_none = lambda x: x is None  # noqa: E731
-  if chunk is None:
-    return jax.vmap(partial(render_depth, cam), in_axes=(model_axes, 0))(m, d)
-  part = jax.tree.map(lambda x, a: None if a is None else x, m, model_axes, is_leaf=is_none)
-
-  def one(xs):
-    mb, db = xs
-    full = jax.tree.map(lambda x, y, a: x if a is None else y, m, mb, model_axes,
-                        is_leaf=is_none)
-    return render_depth(cam, full, db)
-
-  return jax.lax.map(one, (part, d), batch_size=chunk)
-
-
 def _noise_params(cfg_or_params: Any) -> tuple[float, float, float, float]:
-  """(max_depth, sigma, clip, factor) from a CameraConfig, a DepthCamera or a dict."""
+  """(max_depth, sigma, clip, factor) from a CameraConfig or a DepthCamera."""
   if isinstance(cfg_or_params, CameraConfig):
     c = cfg_or_params
     return c.max_depth_m, c.noise_sigma_m, c.noise_clip_m, c.noise_factor
-  if isinstance(cfg_or_params, DepthCamera):
-    c = cfg_or_params
-    return c.max_depth, c.noise_sigma, c.noise_clip, c.noise_factor
-  c = dict(cfg_or_params)
-  return c["max_depth"], c["sigma"], c["clip"], c["factor"]
+  c = cfg_or_params
+  return c.max_depth, c.noise_sigma, c.noise_clip, c.noise_factor
 
 
 def add_noise(depth: jax.Array, key: jax.Array, cfg_or_params: Any,
@@ -515,7 +484,7 @@ def add_noise(depth: jax.Array, key: jax.Array, cfg_or_params: Any,
 
   `clip(d + k (n1 + n2), 0, max_depth)` with `n1 = clip(N(0, sigma), +-clip)` and
   `n2 = clip(N(0, 1) d / 10, +-clip)`, independent per pixel. `cfg_or_params`: a
-  `CameraConfig`, a `DepthCamera` or a dict(max_depth, sigma, clip, factor). `k` is the
+  `CameraConfig` or a `DepthCamera`. `k` is the
   config's noise factor unless `noise_factor` (may be traced) is given.
   """
   max_depth, sigma, clip, factor = _noise_params(cfg_or_params)
@@ -561,5 +530,5 @@ def reference_depth(model: mujoco.MjModel, data: mujoco.MjData, cam: DepthCamera
   return np.minimum(z, cam.max_depth).reshape(cam.height, cam.width)
 
 
-__all__ = ["DepthCamera", "render_depth", "render_depth_info", "render_depth_batch", "add_noise",
+__all__ = ["DepthCamera", "render_depth", "render_depth_info", "add_noise",
            "quantize_depth", "dequantize_depth", "reference_depth"]

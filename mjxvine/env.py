@@ -35,7 +35,7 @@ from brax.envs.base import Env, State
 from mujoco import mjx
 
 from mjxvine import depth as depth_cam
-from mjxvine.config import Config, action_box
+from mjxvine.config import Config, action_box, depth_input_scale
 from mjxvine.protocol import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
                               REWARD_PREFIX, RUNNING, SUCCESS, TIMEOUT)
 from mjxvine.wrappers import AutoResetBatch
@@ -370,7 +370,7 @@ class VectorObsEnv(Env):
     h, w = self.pool
     d = obs["depth"][..., 0]
     d = d.reshape(h, d.shape[0] // h, w, d.shape[1] // w).mean(axis=(1, 3))
-    return jp.concatenate([d.reshape(-1) / self.cfg.camera.max_depth_m, obs["state"]])
+    return jp.concatenate([d.reshape(-1) * depth_input_scale(self.cfg), obs["state"]])
 
   def reset(self, rng: jax.Array) -> State:
     state = self.inner.reset(rng)

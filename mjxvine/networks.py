@@ -193,13 +193,13 @@ class SACNetworks(NamedTuple):
 
 
 def make_networks(action_low: Sequence[float], action_high: Sequence[float], hidden: int = 256,
-                  num_hidden: int = 2, conv_features: int = 32, depth_scale: float = 1.0,
+                  conv_features: int = 32, depth_scale: float = 1.0,
                   log_std_min: float = -20.0, log_std_max: float = 2.0,
                   compute_dtype: str = "float32") -> SACNetworks:
   """Builds the actor and twin critic for an action box [action_low, action_high].
 
   `depth_scale` multiplies the depth (metres) before the first conv; the paper's
-  networks are `hidden=256, num_hidden=2, conv_features=32`. `compute_dtype`: "float32"
+  networks are `hidden=256, conv_features=32` (two hidden layers). `compute_dtype`: "float32"
   or "bfloat16" (mixed precision, see the module docstring).
   """
   dtype = jnp.dtype(compute_dtype)
@@ -207,7 +207,7 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
   high = jnp.asarray(action_high, jnp.float32)
   if low.shape != high.shape or low.ndim != 1 or not bool(jnp.all(high > low)):
     raise ValueError(f"bad action box: low={action_low}, high={action_high}")
-  hs = (hidden,) * num_hidden
+  hs = (hidden, hidden)
   actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, log_std_min, log_std_max,
                 dtype)
   critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype)

@@ -36,8 +36,8 @@ from mjxvine import policies
 from mjxvine import sac as sac_lib
 from mjxvine import starts
 from mjxvine.checkpoint import Checkpoints
-from mjxvine.config import (Config, add_config_args, config_from_args, enable_compile_cache,
-                            load_config, replace, to_yaml)
+from mjxvine.config import (Config, add_config_args, changed_keys, config_from_args,
+                            enable_compile_cache, load_config, replace, to_yaml)
 from mjxvine.protocol import TrainEnv
 from mjxvine.trainer import (NonFiniteError, compile_key, compiled, init_members,
                              sweep_members)
@@ -462,8 +462,7 @@ def main(argv=None) -> int:
       p.error(f"--resume {run_dir}: no config.yaml there (not a run directory)")
     old = load_config(resolved)
     cfg = config_from_args(argparse.Namespace(config=str(resolved), overrides=args.overrides))
-    changed = [f"{s}.{k}" for s in ("world", "robot", "camera", "env", "sac", "train", "eval")
-               for k, v in vars(getattr(cfg, s)).items() if getattr(getattr(old, s), k) != v]
+    changed = changed_keys(old, cfg)
     free = ("train.total_env_steps", "train.max_minutes", "train.eval_every_chunks",
             "eval.runs_after_train")
     if any(c not in free for c in changed):

@@ -141,6 +141,10 @@ def test_resuming_a_finished_run_says_it_is_complete(first_run, monkeypatch, cap
   err = capsys.readouterr().err
   assert "is complete" in err and "best checkpoint (chunk" in err
   assert len((run / "metrics.jsonl").read_text().splitlines()) == 4
+  # what may not change on a resume is refused, naming the key
+  with pytest.raises(SystemExit) as exit_info:
+    train_mod.main(["--resume", run.name, "--set", "sac.learning_rate=0.5"])
+  assert exit_info.value.code == 2 and "sac.learning_rate" in capsys.readouterr().err
 
 
 def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
