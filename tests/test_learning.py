@@ -2,8 +2,13 @@
 as it is: 4 m rows, starts with up to 15 deg of yaw and 0.2 m of lateral offset, 12,000
 env steps; about 6 minutes on 2 cores, without its closing test-world evaluation) ends
 with a best checkpoint whose deterministic policy, in EACH direction, reaches the end of
-the row from fresh starts (others than those the best was chosen on) clearly more often
-than driving straight and than random actions from the same starts."""
+the row clearly more often than driving straight and than random actions, from 128 fresh
+starts per direction that are harder than the training ones (up to 25 deg and 0.3 m:
+driving straight solves under half of them, so the policy must steer from the image).
+
+Why harder starts: from the training starts driving straight solves 70-85 %, which
+leaves too little room for a clear margin, and which side of it a run lands on changed
+with the last bits of its arithmetic (another CPU, another fusion of the same step)."""
 
 import jax
 import pytest
@@ -11,12 +16,13 @@ import pytest
 from mjxvine import starts
 from mjxvine import train as train_mod
 from mjxvine.checkpoint import Checkpoints
-from mjxvine.config import load_config
+from mjxvine.config import load_config, replace
 
 pytestmark = pytest.mark.slow  # minutes on 2 cores: `pytest -m slow` (CI runs it)
 
-MARGIN_STRAIGHT = 0.15  # driving straight solves about 50-70 % of these starts
+MARGIN_STRAIGHT = 0.2  # driving straight solves about 45-50 % of these starts
 MARGIN_RANDOM = 0.4
+HARD_STARTS = {"start_yaw_jitter_deg": 25.0, "start_lateral_jitter_m": 0.3}
 
 
 def test_sac_beats_random_and_straight_in_both_directions(tmp_path):
@@ -26,8 +32,8 @@ def test_sac_beats_random_and_straight_in_both_directions(tmp_path):
   sac, init_fn, _ = train_mod.compiled_trainer(cfg)
   template = init_fn(jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
   _, best = Checkpoints(tmp_path, False).restore(template, best=True)
-  run = train_mod.start_evaluator(cfg)  # the run's own compiled evaluation
-  key = jax.random.PRNGKey(11)  # other starts than the ones the best was chosen on
+  run = train_mod.start_evaluator(replace(cfg, env=HARD_STARTS, train={"eval_starts": 128}))
+  key = jax.random.PRNGKey(11)
   success = {}
   for name, policy in (("trained", starts.ACTOR), *starts.BASELINES.items()):
     out = run(train_mod.starts_params(best.learner.actor_params, policy), key)
