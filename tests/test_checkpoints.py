@@ -132,7 +132,7 @@ class _State(flax.struct.PyTreeNode):
 @pytest.fixture(scope="module")
 def tiny_actor():
   """(networks, actor params, observation with a batch of 1) of a tiny depth actor."""
-  nets = nw.make_networks([0.0, -1.0], [0.5, 1.0], hidden=8, num_hidden=1, conv_features=2)
+  nets = nw.make_networks([0.0, -1.0], [0.5, 1.0], hidden=8, conv_features=2)
   obs = {"depth": jp.full((1, 36, 36, 1), 2.0), "state": jp.zeros((1, 3))}
   return nets, nw.init_params(nets, jax.random.PRNGKey(0), obs)[0], obs
 
