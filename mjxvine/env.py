@@ -36,6 +36,8 @@ from mujoco import mjx
 
 from mjxvine import depth as depth_cam
 from mjxvine.config import Config, action_box, depth_input_scale
+# The outcome codes are also read from here (starts, evaluate, tests): noqa for those
+# this module does not use itself.
 from mjxvine.protocol import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
                               REWARD_PREFIX, RUNNING, SUCCESS, TIMEOUT)
 from mjxvine.wrappers import AutoResetBatch
@@ -89,6 +91,14 @@ def lane_frame(line: jax.Array, p: jax.Array, direction: jax.Array):
   return i, t, lateral, rel @ t
 
 
+def point_ahead(line: jax.Array, index: jax.Array, direction: jax.Array,
+                samples: int) -> jax.Array:
+  """The centerline sample `samples` samples after `index` in the travel direction (2,),
+  clipped to the lane's ends (past the EoR it stays at the last sample)."""
+  ahead = jp.where(direction > 0, samples, -samples)
+  return line[jp.clip(index + ahead, 0, line.shape[0] - 1)]
+
+
 class VineyardEnv(Env):
   """Batched vineyard-navigation environment over a pool of worlds (brax `Env`)."""
 
@@ -107,7 +117,9 @@ class VineyardEnv(Env):
     self.model, self.model_axes = batch_models(models)
     self.camera = depth_cam.DepthCamera.create(self.mj_model, cfg.camera)
     self.lanes = LaneTable(self.worlds)
-    self._sample_m = self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
+    self.sample_m = self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
+    # heading_target=lane: centerline samples between the robot's nearest one and its target
+    self._lookahead_samples = int(np.round(cfg.env.heading_lookahead_m / self.sample_m))
     self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds, cfg))
     self.substeps = int(round(cfg.env.control_dt / cfg.env.physics_dt))
     low, high = action_box(cfg)
@@ -290,9 +302,7 @@ class VineyardEnv(Env):
     dist = jp.linalg.norm(xy - pose["eor"])
     target = pose["eor"]
     if env.heading_target == "lane":  # a pure-pursuit point: phi = 0 only on the centreline
-      ahead = jp.round(env.heading_lookahead_m / self._sample_m).astype(jp.int32)
-      k = line.shape[0]
-      target = line[jp.clip(nearest + jp.where(pose["direction"] > 0, ahead, -ahead), 0, k - 1)]
+      target = point_ahead(line, nearest, pose["direction"], self._lookahead_samples)
     to_target = target - xy
     phi = _wrap(jp.arctan2(to_target[1], to_target[0]) - yaw)
     heading_err = _wrap(yaw - jp.arctan2(tangent[1], tangent[0]))
@@ -406,6 +416,7 @@ def pure_pursuit(env: VineyardEnv, lookahead_m: float = 1.0, speed: float | None
   drive every test lane.
   """
   v_cmd = env.cfg.env.v_max if speed is None else speed
+  ahead = int(np.ceil(lookahead_m / env.sample_m))
 
   def policy(state: State, key: jax.Array) -> jax.Array:
     del key
@@ -414,12 +425,7 @@ def pure_pursuit(env: VineyardEnv, lookahead_m: float = 1.0, speed: float | None
     xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
     line = env.lanes.centerline[pose["world"], pose["lane"]]
     i, _, _, _ = lane_frame(line, xy, pose["direction"])
-    k = line.shape[0]
-    ahead = int(np.ceil(lookahead_m / (env.worlds[0].length_m / (k - 1))))
-    j = jp.clip(i + jp.where(pose["direction"] > 0, ahead, -ahead), 0, k - 1)
-    target = line[j]
-    # Past the EoR the lookahead point stays at the lane's last sample.
-    rel = target - xy
+    rel = point_ahead(line, i, pose["direction"], ahead) - xy
     alpha = _wrap(jp.arctan2(rel[1], rel[0]) - yaw)
     dist = jp.maximum(jp.linalg.norm(rel), 0.3)
     w = 2.0 * v_cmd * jp.sin(alpha) / dist

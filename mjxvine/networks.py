@@ -284,3 +284,9 @@ def sample_squashed(key: jax.Array, mean: jax.Array, log_std: jax.Array, low: ja
 def deterministic_action(mean: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
   """The test-time action: the squashed, box-mapped mean (..., A)."""
   return squash(mean, low, high)
+
+
+def act_deterministic(nets: SACNetworks, actor_params: Any, obs: Obs) -> jax.Array:
+  """The actor's test-time action (..., A) for `obs` (any leading batch dims)."""
+  mean, _ = nets.actor.apply({"params": actor_params}, obs)
+  return deterministic_action(mean, nets.action_low, nets.action_high)

@@ -27,8 +27,7 @@ def actor_policy(nets: nw.SACNetworks, actor_params, *, brax: bool = False):
   """
   def policy(state, key):
     del key
-    mean, _ = nets.actor.apply({"params": actor_params}, state if brax else state.obs)
-    action = nw.deterministic_action(mean, nets.action_low, nets.action_high)
+    action = nw.act_deterministic(nets, actor_params, state if brax else state.obs)
     return (action, {}) if brax else action
 
   return policy

@@ -257,8 +257,7 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
     return nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)[0]
 
   def act_deterministic(actor_params: Params, obs: Obs) -> jax.Array:
-    mean, _ = nets.actor.apply({"params": actor_params}, obs)
-    return nw.deterministic_action(mean, nets.action_low, nets.action_high)
+    return nw.act_deterministic(nets, actor_params, obs)
 
   return SAC(nets, cfg, init, update, update_from, update_many, act, act_deterministic)
 

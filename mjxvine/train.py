@@ -238,8 +238,8 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   """Trains (or resumes) a run; returns the final log row of member 0 (of a run found
   complete on resume: the last row of its metrics.jsonl, `_last_row`). Trains
   `train.num_seeds` seeds times the `train.sweep` grid at once (vmap). `env` defaults to
-  the config's vineyard pool; another `protocol.TrainEnv` (e.g. `wrappers.brax_env(...)`) trains the same way, without
-  the vineyard evaluations.
+  the config's vineyard pool; another `protocol.TrainEnv` (e.g. `wrappers.brax_env(...)`)
+  trains the same way, without the vineyard evaluations.
 
   With the vineyard env, every `train.eval_every_chunks` chunks and at the end (with
   `evaluate_at_end` or eval_every_chunks > 0) the deterministic policy drives
@@ -292,8 +292,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
     member 0's scores are the best so far."""
     t0 = time.time()
     out = start_eval(starts_params(ts.learner.actor_params, starts.ACTOR, seeds), eval_key)
-    rows = [{f"eval_{k}": float(np.reshape(v, (-1,))[s]) for k, v in out.items()}
-            for s in range(seeds)]
+    rows = [_member_scores(out, s) for s in range(seeds)]
     best = ckpt.best_scores()
     if best is None or _score(rows[0]) > _score(best):
       ckpt.save_best(chunk_index, ts, {"env_steps": int(np.max(ts.env_steps)), **rows[0]})
@@ -378,6 +377,11 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   return last_row
 
 
+def _member_scores(out: dict, member: int) -> dict:
+  """{"eval_<name>": float} of one member from a `start_evaluator` run's output."""
+  return {f"eval_{k}": float(np.reshape(v, (-1,))[member]) for k, v in out.items()}
+
+
 def _eval_line(scores: dict) -> str:
   return (f"forward {scores['eval_success_forward']:.0%}, reverse "
           f"{scores['eval_success_reverse']:.0%}, lateral MAE {scores['eval_mae_m']:.3f} m")
@@ -406,7 +410,7 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
         f"{2 * cfg.train.eval_starts} fresh starts on the training rows: {_eval_line(best)}")
     for name, policy in starts.BASELINES.items():
       out = start_eval(starts_params(actor, policy, seeds), eval_key)
-      scores = {f"eval_{k}": float(np.reshape(v, (-1,))[0]) for k, v in out.items()}
+      scores = _member_scores(out, 0)
       row.update({f"{name}_{k}": v for k, v in scores.items()})
       say(f"  the same starts, {'driving straight' if name == 'straight' else name}: "
           f"{_eval_line(scores)}")
