@@ -183,7 +183,11 @@ def restore_actor_params(path: str | Path, which: str = "best") -> tuple[Any, Pa
     first = (str(e).splitlines() or [""])[0][:120]
     raise ValueError(f"{item}: not a readable orbax checkpoint ({type(e).__name__}: "
                      f"{first})") from None
-  actor = _find_key(tree, "actor_params")
+  # the evaluated actor (`LearnerState.policy_params`); checkpoints from before it had
+  # only the learning actor
+  actor = _find_key(tree, "policy_params")
+  if actor is None:
+    actor = _find_key(tree, "actor_params")
   if actor is None:
     raise KeyError(f"{item}: the checkpoint has no 'actor_params' entry")
   return actor, item

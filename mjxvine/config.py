@@ -165,11 +165,17 @@ class EnvConfig:
 class SACConfig:
   """Soft Actor-Critic (docs/design.md, SAC hyper-parameters)."""
   learning_rate: float = _f(2e-4, 1e-7, 1.0)
+  lr_end_fraction: float = _f(1.0, 0.0, 1.0, doc="the actor's and critics' learning rate "
+                              "decays linearly with env steps to this fraction of "
+                              "learning_rate at train.total_env_steps (1.0: constant)")
   gamma: float = _f(0.99, 0.0, 1.0)
   tau: float = _f(5e-3, 0.0, 1.0)
   alpha: float = _f(0.2, 0.0, 100.0, doc="entropy temperature (initial value if auto_alpha)")
   auto_alpha: bool = _f(False)
-  target_entropy: float = _f(-2.0, -100.0, 100.0)
+  target_entropy: float = _f(-2.0, -100.0, 100.0, doc="auto_alpha's target policy entropy, "
+                             "nats of the density on the action box (the paper's -2): "
+                             "-dim(A) on [-1, 1]^2 is -2 + log(0.25 * 1) = -3.39 on the "
+                             "vineyard's [0, 0.5] x [-1, 1]")
   batch_size: int = _f(128, 1, 1 << 16)
   buffer_size: int = _f(100_000, 1, 1 << 26)
   replay_depth_dtype: str = _f("uint16", choices=("uint8", "uint16"),
@@ -192,6 +198,10 @@ class SACConfig:
                           doc="dtype the convs and hidden layers compute in (bfloat16: "
                           "mixed precision for accelerators; parameters, heads, losses and "
                           "optimiser states stay float32)")
+  actor_ema_tau: float = _f(0.0, 0.0, 1.0, doc="the actor that is evaluated, kept as best "
+                            "and exported is a Polyak average of the learning actor, moved "
+                            "by this rate every gradient step (0: the learning actor "
+                            "itself); acting during training always uses the learning actor")
   reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
                                     "features of obs from the critic loss and the critics "
                                     "as they were before this step's update (as brax's SAC "

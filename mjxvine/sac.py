@@ -50,7 +50,11 @@ class Transition(NamedTuple):
 
 
 class LearnerState(flax.struct.PyTreeNode):
-  """All mutable learner state. Critic params hold "critic0" and "critic1"."""
+  """All mutable learner state. Critic params hold "critic0" and "critic1".
+
+  `policy_params` is the actor that is evaluated, kept as best and exported: the online
+  `actor_params`, or their Polyak average when `sac.actor_ema_tau` > 0.
+  """
   actor_params: Params
   critic_params: Params
   target_critic_params: Params
@@ -59,6 +63,7 @@ class LearnerState(flax.struct.PyTreeNode):
   alpha_opt_state: optax.OptState
   log_alpha: jax.Array  # () float32
   step: jax.Array  # () int32, gradient steps taken
+  policy_params: Params
 
 
 # ----------------------------------------------------------------------------------------
@@ -159,9 +164,9 @@ class SAC(NamedTuple):
   """SAC functions closed over the networks and config (all jit-able).
 
   init(key, obs) -> LearnerState                       obs: example with a batch axis
-  update(state, batch, key) -> (state, metrics)        one gradient step
-  update_from(state, buffer, key) -> (state, metrics)  one step on cfg.batch_size samples
-  update_many(state, buffer, key) -> (state, metrics)  cfg.grad_steps_per_iter of those,
+  update(state, batch, key, lr_scale=1) -> (state, metrics)  one gradient step
+  update_from(state, buffer, key, lr_scale=1)          one step on cfg.batch_size samples
+  update_many(state, buffer, key, lr_scale=1)          cfg.grad_steps_per_iter of those,
                                                         with keys split(key, G), metrics
                                                         averaged
   act(actor_params, obs, key) -> action (..., A)       stochastic (squashed sample)
@@ -202,10 +207,13 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
         target_critic_params=jax.tree.map(jnp.copy, critic_params),
         actor_opt_state=opt.init(actor_params), critic_opt_state=opt.init(critic_params),
         alpha_opt_state=opt.init(log_alpha), log_alpha=log_alpha,
-        step=jnp.zeros((), jnp.int32))
+        step=jnp.zeros((), jnp.int32), policy_params=jax.tree.map(jnp.copy, actor_params))
 
-  def update(state: LearnerState, batch: Transition, key: jax.Array):
+  def update(state: LearnerState, batch: Transition, key: jax.Array, lr_scale=1.0):
+    """One gradient step; `lr_scale` multiplies the actor's and critics' learning rate
+    (`learning_rate_scale`: Adam's step is linear in it)."""
     k_critic, k_actor = jax.random.split(key)
+    scaled = lambda updates: jax.tree.map(lambda u: u * lr_scale, updates)
     alpha = jnp.exp(state.log_alpha)
 
     reuse = cfg.reuse_critic_features
@@ -213,7 +221,7 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
         state.critic_params, state.target_critic_params, state.actor_params, alpha, batch,
         k_critic, nets, cfg.gamma, reuse)
     c_updates, critic_opt_state = opt.update(c_grads, state.critic_opt_state)
-    critic_params = optax.apply_updates(state.critic_params, c_updates)
+    critic_params = optax.apply_updates(state.critic_params, scaled(c_updates))
 
     # reuse: the actor is scored by the critics of the critic loss (before their update),
     # whose tower features of obs are already computed
@@ -221,7 +229,7 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
         state.actor_params, state.critic_params if reuse else critic_params, alpha, batch,
         k_actor, nets, c_aux.get("features"))
     a_updates, actor_opt_state = opt.update(a_grads, state.actor_opt_state)
-    actor_params = optax.apply_updates(state.actor_params, a_updates)
+    actor_params = optax.apply_updates(state.actor_params, scaled(a_updates))
 
     log_alpha, alpha_opt_state = state.log_alpha, state.alpha_opt_state
     al_loss = alpha_loss(log_alpha, logp, cfg.target_entropy)
@@ -234,7 +242,9 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
         actor_params=actor_params, critic_params=critic_params,
         target_critic_params=polyak(state.target_critic_params, critic_params, cfg.tau),
         actor_opt_state=actor_opt_state, critic_opt_state=critic_opt_state,
-        alpha_opt_state=alpha_opt_state, log_alpha=log_alpha, step=state.step + 1)
+        alpha_opt_state=alpha_opt_state, log_alpha=log_alpha, step=state.step + 1,
+        policy_params=(polyak(state.policy_params, actor_params, cfg.actor_ema_tau)
+                       if cfg.actor_ema_tau > 0 else actor_params))
     metrics = {
         "critic_loss": c_loss, "actor_loss": a_loss, "alpha_loss": al_loss,
         "alpha": jnp.exp(log_alpha), "q_mean": jnp.mean(c_aux["q"]),
@@ -242,12 +252,13 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
     }
     return new_state, metrics
 
-  def update_from(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array):
+  def update_from(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):
     k_sample, k_update = jax.random.split(key)
-    return update(state, shard_batch(sample(buffer, k_sample, cfg.batch_size)), k_update)
+    return update(state, shard_batch(sample(buffer, k_sample, cfg.batch_size)), k_update,
+                  lr_scale)
 
-  def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array):
-    state, metrics = jax.lax.scan(lambda st, k: update_from(st, buffer, k), state,
+  def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):
+    state, metrics = jax.lax.scan(lambda st, k: update_from(st, buffer, k, lr_scale), state,
                                   jax.random.split(key, cfg.grad_steps_per_iter),
                                   unroll=unroll)
     return state, jax.tree.map(jnp.mean, metrics)
@@ -480,3 +491,11 @@ def epsilon(cfg: SACConfig, env_steps: jax.Array, total_env_steps: int) -> jax.A
   """
   episodes = cfg.eps_budget_episodes * jnp.asarray(env_steps, jnp.float32) / total_env_steps
   return jnp.maximum(cfg.eps_start * jnp.power(cfg.eps_decay, episodes), cfg.eps_min)
+
+
+def learning_rate_scale(cfg: SACConfig, env_steps: jax.Array, total_env_steps) -> jax.Array:
+  """The actor's and critics' learning rate () as a fraction of `cfg.learning_rate` after
+  `env_steps` env steps summed over all envs: linear from 1 at the start to
+  `cfg.lr_end_fraction` at `total_env_steps`, then held (1 throughout by default)."""
+  done = jnp.minimum(jnp.asarray(env_steps, jnp.float32) / total_env_steps, 1.0)
+  return 1.0 - (1.0 - cfg.lr_end_fraction) * done

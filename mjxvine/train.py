@@ -291,7 +291,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
     """Evaluates every member; saves the state of all members as checkpoints/best when
     member 0's scores are the best so far."""
     t0 = time.time()
-    out = start_eval(starts_params(ts.learner.actor_params, starts.ACTOR, seeds), eval_key)
+    out = start_eval(starts_params(ts.learner.policy_params, starts.ACTOR, seeds), eval_key)
     rows = [_member_scores(out, s) for s in range(seeds)]
     best = ckpt.best_scores()
     if best is None or _score(rows[0]) > _score(best):
@@ -401,11 +401,11 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
   drive-straight and random baselines from the same starts, evaluates it on the test world
   (the paper's protocol, `eval.runs_after_train` runs per lane-direction, for
   information) and names the files of the run."""
-  actor = ts.learner.actor_params
+  actor = ts.learner.policy_params
   if best is not None:
     restored = ckpt.restore(ts, best=True)
     if restored is not None:
-      actor = restored[1].learner.actor_params
+      actor = restored[1].learner.policy_params
     say(f"\nbest policy (chunk {best['chunk']}, {best['env_steps']} env steps) from "
         f"{2 * cfg.train.eval_starts} fresh starts on the training rows: {_eval_line(best)}")
     for name, policy in starts.BASELINES.items():

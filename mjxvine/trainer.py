@@ -135,14 +135,17 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
 
   def learn_step(ts: TrainState, key: jax.Array):
     """One gradient step on a replay batch: `key` is one of split(k_update, G)."""
-    learner, metrics = sac.update_from(ts.learner, ts.buffer, key)
+    lr_scale = sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)
+    learner, metrics = sac.update_from(ts.learner, ts.buffer, key, lr_scale)
     return ts.replace(learner=learner), metrics
 
   def iteration(ts: TrainState, _):
     """collect, then G gradient steps if due (lax.cond): the device path."""
     ts, k_update, learn = collect(ts)
     learner, metrics = jax.lax.cond(
-        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update),
+        learn, lambda: sac.update_many(
+            ts.learner, ts.buffer, k_update,
+            sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)),
         lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
     metrics["learning"] = learn.astype(jp.float32)
     return ts.replace(learner=learner), metrics
@@ -154,6 +157,7 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     w = learning / jp.maximum(learning.sum(), 1.0)
     out = {k: jp.sum(v * w) for k, v in metrics.items()}
     out["eps"] = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
+    out["lr_scale"] = sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)
     out["alpha"] = jp.exp(ts.learner.log_alpha)
     out["finite"] = _all_finite(ts.learner)
     return ts, out

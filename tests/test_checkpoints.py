@@ -75,6 +75,18 @@ def test_restore_actor_params_picks_the_step(runs):
   assert isinstance(actor["dense0"]["kernel"], np.ndarray)
 
 
+def test_restore_prefers_the_evaluated_actor(tmp_path):
+  """A checkpoint with `policy_params` (the evaluated actor, e.g. a Polyak average)
+  restores those, not the learning `actor_params`; older ones restore `actor_params`."""
+  manager = ocp.CheckpointManager((tmp_path / "checkpoints").resolve(),
+                                  options=ocp.CheckpointManagerOptions(create=True))
+  manager.save(1, args=ocp.args.StandardSave(
+      {"learner": {"actor_params": _actor(1), "policy_params": _actor(7)}}))
+  manager.wait_until_finished()
+  manager.close()
+  assert _step_of(checkpoint.restore_actor_params(tmp_path)[0]) == 7.0
+
+
 def test_relative_paths(runs, monkeypatch, tmp_path, capsys):
   monkeypatch.chdir(runs)
   item = checkpoint.checkpoint_item("run")

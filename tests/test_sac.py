@@ -443,6 +443,43 @@ def test_learning_rate_lives_in_the_state_and_vmaps(tiny):
   assert step[1] == pytest.approx(1e-4, rel=0.05) and step[2] == pytest.approx(1e-3, rel=0.05)
 
 
+def test_learning_rate_decays_linearly_over_the_budget(tiny):
+  """`lr_end_fraction`: the scale runs linearly from 1 to the fraction over the env-step
+  budget and is then held; an update's step scales with it (lr_scale 0: no change)."""
+  total = 16_000
+  scale = lambda cfg, t: float(sac.learning_rate_scale(cfg, t, total))
+  decay = SACConfig(lr_end_fraction=0.1)
+  assert scale(decay, 0) == 1.0 and scale(decay, 8_000) == pytest.approx(0.55)
+  assert scale(decay, total) == pytest.approx(0.1) and scale(decay, 2 * total) == pytest.approx(0.1)
+  assert scale(SACConfig(), 12_345) == 1.0  # the default is constant
+  nets, _, _, _, batch, _ = tiny
+  agent = sac.make_sac(nets, SACConfig(learning_rate=1e-3))
+  state = jax.jit(agent.init)(jax.random.PRNGKey(1), batch.obs)
+  update = jax.jit(agent.update)
+  step = lambda s: max(float(np.max(np.abs(a - b))) for a, b in zip(
+      jax.tree.leaves(update(state, batch, jax.random.PRNGKey(2), s)[0].critic_params),
+      jax.tree.leaves(state.critic_params)))
+  assert step(0.0) == 0.0
+  assert step(0.25) == pytest.approx(0.25 * step(1.0), rel=1e-4)
+
+
+def test_policy_params_are_the_actor_or_its_polyak_average(tiny):
+  """`policy_params` (evaluated and exported) follow the learning actor by default, and
+  with `actor_ema_tau` move that fraction of the way towards it every step."""
+  nets, _, _, _, batch, _ = tiny
+  for tau in (0.0, 0.25):
+    agent = sac.make_sac(nets, SACConfig(learning_rate=1e-2, actor_ema_tau=tau))
+    state = jax.jit(agent.init)(jax.random.PRNGKey(1), batch.obs)
+    new, _ = jax.jit(agent.update)(state, batch, jax.random.PRNGKey(2))
+    expect = new.actor_params if tau == 0 else jax.tree.map(
+        lambda e, a: (1 - tau) * e + tau * a, state.policy_params, new.actor_params)
+    jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-8),
+                 new.policy_params, expect)
+    moved = max(float(np.max(np.abs(a - b))) for a, b in zip(
+        jax.tree.leaves(new.policy_params), jax.tree.leaves(state.policy_params)))
+    assert moved > 0.0
+
+
 def test_reused_critic_features_score_the_actor_with_the_pre_update_critics():
   """sac.reuse_critic_features: the update's actor loss equals the actor loss under the
   critics before their update (towers run once for the critic and actor losses), the
