@@ -202,6 +202,11 @@ class SACConfig:
                             "and exported is a Polyak average of the learning actor, moved "
                             "by this rate every gradient step (0: the learning actor "
                             "itself); acting during training always uses the learning actor")
+  mirror_augment: bool = _f(False, doc="every sampled transition is mirrored left-right "
+                            "with probability 1/2 (depth columns reversed, turn rate and yaw "
+                            "negated: the task is symmetric), so that both networks learn "
+                            "from each experience on both sides and the actor gets no "
+                            "steering bias from unbalanced data; no extra cost")
   reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
                                     "features of obs from the critic loss and the critics "
                                     "as they were before this step's update (as brax's SAC "
@@ -338,6 +343,11 @@ def _check_cross_fields(cfg: Config) -> None:
   parse_sweep(cfg.train.sweep)
   if cfg.sac.log_std_min >= cfg.sac.log_std_max:
     raise ConfigError(f"sac.log_std_min = {cfg.sac.log_std_min}: must be < sac.log_std_max")
+  if (cfg.sac.mirror_augment and cfg.env.yaw_reference == "world"
+      and cfg.env.yaw_offset_deg != 0.0):
+    raise ConfigError(f"sac.mirror_augment = true: the mirror negates the yaw input, which "
+                      f"needs env.yaw_offset_deg = 0 with env.yaw_reference = world "
+                      f"(got {cfg.env.yaw_offset_deg})")
 
 
 # Hyper-parameters that a vmapped sweep may vary (they live in the learner state).

@@ -144,6 +144,26 @@ class VineyardEnv(Env):
   def backend(self) -> str:
     return "mjx"
 
+  # ------------------------------------------------------------------ mirror symmetry
+  # The task is left-right symmetric: mirrored about the robot's forward axis, a vineyard
+  # is another vineyard (plants, terrain and noise are random, the camera sits on the
+  # robot's centre plane with columns symmetric about its optical axis, the reward and the
+  # start jitter are even in lateral offset and yaw). So (mirror_obs(o), mirror_action(a),
+  # r, mirror_obs(o')) is as valid a transition as (o, a, r, o') (`sac.mirror_augment`).
+  # With the world yaw as input (`env.yaw_reference=world`) this needs yaw_offset_deg = 0.
+
+  @staticmethod
+  def mirror_obs(obs: dict) -> dict:
+    """The observation mirrored left-right (any leading batch dims): the depth image's
+    columns reversed, and the previous turn rate and the yaw negated."""
+    return {"depth": jp.flip(obs["depth"], axis=-2),
+            "state": obs["state"] * jp.array([1.0, -1.0, -1.0], obs["state"].dtype)}
+
+  @staticmethod
+  def mirror_action(action: jax.Array) -> jax.Array:
+    """[v, w] mirrored left-right: [v, -w] (the turn-rate box is symmetric)."""
+    return action * jp.array([1.0, -1.0], action.dtype)
+
   def world_model(self, world: jax.Array) -> mjx.Model:
     """The mjx.Model of pool world `world` (a traced index is fine)."""
     return take_world(self.model, self.model_axes, world)

@@ -182,12 +182,29 @@ class SAC(NamedTuple):
   act_deterministic: Callable
 
 
+def mirror_half(batch: Transition, key: jax.Array, mirror_obs: Callable,
+                mirror_action: Callable) -> Transition:
+  """`batch` with each transition replaced, with probability 1/2, by its mirror image:
+  obs and next_obs through `mirror_obs`, the action through `mirror_action`; reward,
+  flags and weight unchanged (`sac.mirror_augment`)."""
+  flip = jax.random.bernoulli(key, 0.5, batch.reward.shape)
+  def pick(x, mirrored):
+    return jnp.where(flip.reshape(flip.shape + (1,) * (x.ndim - 1)), mirrored, x)
+  return batch._replace(
+      obs=jax.tree.map(pick, batch.obs, mirror_obs(batch.obs)),
+      action=pick(batch.action, mirror_action(batch.action)),
+      next_obs=jax.tree.map(pick, batch.next_obs, mirror_obs(batch.next_obs)))
+
+
 def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
-             shard_batch: Callable = lambda batch: batch) -> SAC:
+             shard_batch: Callable = lambda batch: batch,
+             mirror: tuple[Callable, Callable] | None = None) -> SAC:
   """Builds the SAC learner for `nets` with hyper-parameters `cfg`.
 
   shard_batch: applied to every sampled batch; `mjxvine.parallel`'s `batch_constraint`
   splits it over the devices (data-parallel gradients).
+  mirror: (mirror_obs, mirror_action) of a left-right symmetric env (`VineyardEnv`'s),
+  needed by `cfg.mirror_augment`.
 
   `update_many`'s loop is fully unrolled on the CPU backend when grad_steps_per_iter <=
   16 (XLA:CPU runs convolutions inside a loop body ~20x slower, jax-ml/jax#12868), else
@@ -198,6 +215,9 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
   # vmapped over seeds can also differ in it (`mjxvine.train` sweeps).
   opt = optax.inject_hyperparams(optax.adam)(learning_rate=cfg.learning_rate)
   unroll = jax.default_backend() == "cpu" and cfg.grad_steps_per_iter <= 16
+  if cfg.mirror_augment and mirror is None:
+    raise ValueError("sac.mirror_augment needs an env with a mirror image (mirror_obs, "
+                     "mirror_action): the vineyard's; this env has none")
 
   def init(key: jax.Array, obs: Obs) -> LearnerState:
     actor_params, critic_params = nw.init_params(nets, key, obs)
@@ -254,8 +274,11 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
 
   def update_from(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):
     k_sample, k_update = jax.random.split(key)
-    return update(state, shard_batch(sample(buffer, k_sample, cfg.batch_size)), k_update,
-                  lr_scale)
+    batch = sample(buffer, k_sample, cfg.batch_size)
+    if cfg.mirror_augment:
+      k_sample, k_mirror = jax.random.split(k_sample)
+      batch = mirror_half(batch, k_mirror, *mirror)
+    return update(state, shard_batch(batch), k_update, lr_scale)
 
   def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):
     state, metrics = jax.lax.scan(lambda st, k: update_from(st, buffer, k, lr_scale), state,

@@ -206,3 +206,41 @@ def test_heading_to_the_centreline_ahead_weighted_by_speed():
   # straight row; the train rows wander a little), on it straight ahead
   assert np.min(np.abs(phi[1:3])) > np.abs(phi[0]) + 0.05, phi
   assert np.all(v > 0.05), v
+
+
+def test_mirror_image_of_a_vineyard_is_the_flipped_observation():
+  """`mirror_obs` is what the camera sees in the mirrored vineyard (plants, terrain and
+  pose reflected across y = 0): the depth columns reversed, the yaw negated. This is the
+  symmetry that `sac.mirror_augment` rests on."""
+  import dataclasses
+  from mjxvine.env import VineyardEnv
+  from mjxvine.worlds import generate_world
+  cfg = load_config("experiments/smoke.yaml", [
+      "camera.width=24", "camera.height=16", "world.pool_size=1"])
+  world = generate_world("train", cfg.world.train_seed, cfg.world)
+  x0, x1, y0, y1 = world.terrain_extent
+  flip_y = np.array([1.0, -1.0])
+  mirrored = dataclasses.replace(
+      world, plant_xy=world.plant_xy * flip_y, plant_yaw=-world.plant_yaw,
+      row_y0=-world.row_y0, terrain=world.terrain[::-1].copy(), terrain_extent=(x0, x1, -y1, -y0),
+      lanes=tuple(dataclasses.replace(lane, centerline=lane.centerline * flip_y,
+                                      eor_forward=lane.eor_forward * flip_y,
+                                      eor_reverse=lane.eor_reverse * flip_y)
+                  for lane in world.lanes))
+  lane = world.lanes[1].centerline
+  xy, yaw = lane[len(lane) // 3] + np.array([0.0, 0.15]), 0.3
+  key = jax.random.PRNGKey(0)
+  obs = []
+  for w, sign in ((world, 1.0), (mirrored, -1.0)):
+    env = VineyardEnv(cfg, [w], noise_factor=0.0)
+    pose = dict(world=jp.int32(0), xy=jp.asarray(xy * [1.0, sign], jp.float32),
+                yaw=jp.float32(sign * yaw))
+    m, d = env._pose_data(pose)
+    obs.append(env._observe(m, d, jp.array([0.3, sign * 0.5]), key, jp.float32(0.0)))
+  mirrored_obs = VineyardEnv.mirror_obs(obs[0])
+  np.testing.assert_allclose(mirrored_obs["state"], obs[1]["state"], atol=1e-6)
+  depth, expected = np.asarray(obs[1]["depth"]), np.asarray(mirrored_obs["depth"])
+  assert np.ptp(depth) > 0.5  # plants and ground in view, not an empty image
+  # (the terrain is ray-marched: allow a few pixels off by a march step)
+  assert np.mean(np.abs(depth - expected) < 0.02) > 0.97, np.abs(depth - expected).max()
+  np.testing.assert_allclose(VineyardEnv.mirror_action(jp.array([0.4, 0.7])), [0.4, -0.7])

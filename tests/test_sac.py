@@ -511,3 +511,32 @@ def test_reused_critic_features_score_the_actor_with_the_pre_update_critics():
   flops = lambda agent: jax.jit(agent.update).lower(state, batch, k_update).compile(
       ).cost_analysis()["flops"]
   assert flops(reuse) < 0.95 * flops(plain)
+
+
+def test_mirror_half_flips_whole_transitions():
+  """`mirror_half` replaces about half of the transitions by their mirror image, each one
+  whole (obs, action and next_obs together) and its reward and flags untouched; the
+  learner refuses `mirror_augment` without a mirror."""
+  from mjxvine.env import VineyardEnv
+  n = 256
+  keys = jax.random.split(jax.random.PRNGKey(4), 4)
+  obs = lambda k: {"depth": jax.random.uniform(k, (n, 6, 5, 1)),
+                   "state": jax.random.normal(k, (n, 3))}
+  batch = sac.Transition(
+      obs=obs(keys[0]), action=jax.random.uniform(keys[1], (n, 2), minval=-1.0),
+      reward=jnp.arange(n, dtype=jnp.float32), terminal=jnp.zeros(n), truncated=jnp.zeros(n),
+      next_obs=obs(keys[2]), weight=jnp.ones(n))
+  out = sac.mirror_half(batch, keys[3], VineyardEnv.mirror_obs, VineyardEnv.mirror_action)
+  flipped = np.asarray(out.action[:, 1] != batch.action[:, 1])
+  assert 0.35 < flipped.mean() < 0.65
+  mirrored = sac.Transition(*jax.tree.map(
+      lambda x, m: np.where(flipped.reshape((n,) + (1,) * (x.ndim - 1)), m, x),
+      tuple(batch), (VineyardEnv.mirror_obs(batch.obs),
+                     VineyardEnv.mirror_action(batch.action), batch.reward, batch.terminal,
+                     batch.truncated, VineyardEnv.mirror_obs(batch.next_obs), batch.weight)))
+  jax.tree.map(np.testing.assert_array_equal, tuple(out), tuple(mirrored))
+  np.testing.assert_array_equal(out.obs["depth"][flipped][:, :, ::-1],
+                                batch.obs["depth"][flipped])
+  nets = nw.make_networks(LOW, HIGH, hidden=8)
+  with pytest.raises(ValueError, match="mirror_augment"):
+    sac.make_sac(nets, SACConfig(mirror_augment=True))
