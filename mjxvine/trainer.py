@@ -83,7 +83,8 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
                           depth_scale=depth_input_scale(cfg),
                           log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
                           compute_dtype=cfg.sac.compute_dtype)
-  sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch)
+  mirror = ((env.mirror_obs, env.mirror_action) if hasattr(env, "mirror_obs") else None)
+  sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch, mirror=mirror)
   warmup = cfg.sac.warmup_steps
 
   def init(key: jax.Array) -> TrainState:
@@ -133,19 +134,20 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
         log_terms={k: v + jp.sum(env_state.metrics[k]) for k, v in ts.log_terms.items()})
     return ts, k_update, learn
 
+  def lr_scale(ts: TrainState) -> jax.Array:
+    """This iteration's learning-rate factor (`sac.learning_rate_scale`)."""
+    return sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)
+
   def learn_step(ts: TrainState, key: jax.Array):
     """One gradient step on a replay batch: `key` is one of split(k_update, G)."""
-    lr_scale = sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)
-    learner, metrics = sac.update_from(ts.learner, ts.buffer, key, lr_scale)
+    learner, metrics = sac.update_from(ts.learner, ts.buffer, key, lr_scale(ts))
     return ts.replace(learner=learner), metrics
 
   def iteration(ts: TrainState, _):
     """collect, then G gradient steps if due (lax.cond): the device path."""
     ts, k_update, learn = collect(ts)
     learner, metrics = jax.lax.cond(
-        learn, lambda: sac.update_many(
-            ts.learner, ts.buffer, k_update,
-            sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)),
+        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts)),
         lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
     metrics["learning"] = learn.astype(jp.float32)
     return ts.replace(learner=learner), metrics
@@ -157,7 +159,7 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     w = learning / jp.maximum(learning.sum(), 1.0)
     out = {k: jp.sum(v * w) for k, v in metrics.items()}
     out["eps"] = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
-    out["lr_scale"] = sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)
+    out["lr_scale"] = lr_scale(ts)
     out["alpha"] = jp.exp(ts.learner.log_alpha)
     out["finite"] = _all_finite(ts.learner)
     return ts, out
