@@ -229,14 +229,17 @@ def test_mirror_image_of_a_vineyard_is_the_flipped_observation():
                   for lane in world.lanes))
   lane = world.lanes[1].centerline
   xy, yaw = lane[len(lane) // 3] + np.array([0.0, 0.15]), 0.3
-  key = jax.random.PRNGKey(0)
-  obs = []
-  for w, sign in ((world, 1.0), (mirrored, -1.0)):
-    env = VineyardEnv(cfg, [w], noise_factor=0.0)
-    pose = dict(world=jp.int32(0), xy=jp.asarray(xy * [1.0, sign], jp.float32),
-                yaw=jp.float32(sign * yaw))
+  env = VineyardEnv(cfg, [world, mirrored], noise_factor=0.0)  # pool worlds 0 and 1
+
+  @jax.jit
+  def observe(world, sign):
+    pose = dict(world=world, xy=jp.asarray(xy, jp.float32) * jp.array([1.0, sign]),
+                yaw=jp.float32(yaw) * sign)
     m, d = env._pose_data(pose)
-    obs.append(env._observe(m, d, jp.array([0.3, sign * 0.5]), key, jp.float32(0.0)))
+    return env._observe(m, d, jp.array([0.3, sign * 0.5]), jax.random.PRNGKey(0),
+                        jp.float32(0.0))
+
+  obs = [observe(0, 1.0), observe(1, -1.0)]
   mirrored_obs = VineyardEnv.mirror_obs(obs[0])
   np.testing.assert_allclose(mirrored_obs["state"], obs[1]["state"], atol=1e-6)
   depth, expected = np.asarray(obs[1]["depth"]), np.asarray(mirrored_obs["depth"])
