@@ -276,7 +276,8 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
     k_sample, k_update = jax.random.split(key)
     batch = sample(buffer, k_sample, cfg.batch_size)
     if cfg.mirror_augment:
-      k_sample, k_mirror = jax.random.split(k_sample)
+      # a key derived from the sample's, so that runs without the mirror keep their keys
+      _, k_mirror = jax.random.split(k_sample)
       batch = mirror_half(batch, k_mirror, *mirror)
     return update(state, shard_batch(batch), k_update, lr_scale)
 

@@ -42,8 +42,8 @@ else
   T_TRAIN=${T_TRAIN:-530}; T_BENCH=${T_BENCH:-150}
 fi
 
-# The headline (the paper's heading target, the end of the row) and its ablation with the
-# heading measured to the centreline 2 m ahead (heading_target lane), trained at the same
+# The headline and the same config with mirror augmentation (sac.mirror_augment: on the
+# CPU it centred the agent but lost curved test lanes, one seed), trained at the same
 # time on the one GPU (each process gets 40 % of its memory), so that one device call
 # gives both: each wall-clock is an upper bound of the run alone.
 train_one() {  # name, extra args
@@ -58,13 +58,13 @@ train_one() {  # name, extra args
   timeout 90 python -m mjxvine.export --checkpoint "$RES/$name" --out "$RES/$name.npz" 2>&1 \
     | tee -a "$RES/gpu_check.log"
 }
-log "training: python -m mjxvine.train $HEADLINE [--set env.heading_target=lane]"
+log "training: python -m mjxvine.train $HEADLINE [--set sac.mirror_augment=true]"
 train_one headline &
-train_one headline_lane --set env.heading_target=lane &
+train_one headline_mirror --set sac.mirror_augment=true &
 wait
 cp "$RES/headline.npz" "$OUT/jackal.npz" 2>/dev/null
 cp "$RES/headline/eval/results.md" "$OUT/" 2>/dev/null
-cp "$RES/headline_lane/eval/results.md" "$OUT/results_lane.md" 2>/dev/null
+cp "$RES/headline_mirror/eval/results.md" "$OUT/results_mirror.md" 2>/dev/null
 pack() {
   tar czf "$OUT/results.tgz" -C "$OUT" --exclude "res/*/tb" \
     --exclude "res/*/checkpoints" res
