@@ -276,7 +276,9 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
     k_sample, k_update = jax.random.split(key)
     batch = sample(buffer, k_sample, cfg.batch_size)
     if cfg.mirror_augment:
-      # a key derived from the sample's, so that runs without the mirror keep their keys
+      # split(k_sample)[1], so that runs without the mirror keep their keys. It is also
+      # the key `sample` draws its env indices from (k_env): a reuse, kept because the
+      # lanes.yaml results were measured with it (a fresh key, e.g. fold_in, is cleaner)
       _, k_mirror = jax.random.split(k_sample)
       batch = mirror_half(batch, k_mirror, *mirror)
     return update(state, shard_batch(batch), k_update, lr_scale)
