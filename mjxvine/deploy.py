@@ -149,6 +149,8 @@ class NumpyPolicy:
       self.low = np.asarray(meta["action_low"], np.float32)
       self.high = np.asarray(meta["action_high"], np.float32)
       layers = [(int(s), bool(p)) for s, p in meta["conv_layers"]]
+      # bottom / right edge padding of the tower (files written before it existed: none)
+      self.tower_pad = tuple(int(v) for v in meta.get("tower_pad", (0, 0)))
       num_hidden = int(meta["num_hidden"])
     except (KeyError, TypeError, ValueError) as e:
       raise PolicyFormatError(f"policy metadata is incomplete or invalid: {e!r}") from None
@@ -264,6 +266,8 @@ class NumpyPolicy:
     """The action array: (A,) for one input, (B, A) for a batch; float32 in the box."""
     pre = self.preprocess if preprocess is None else preprocess
     x, s, batched = self._check(depth, state, pre)
+    if any(self.tower_pad):  # repeat the last rows / columns, as the tower was trained
+      x = np.pad(x, ((0, 0), (0, self.tower_pad[0]), (0, self.tower_pad[1]), (0, 0)), "edge")
     for (kernel, pool), work in zip(self._convs, self._workspace(x.shape)):
       x = work(x, kernel)
       if pool:  # max pool commutes with ReLU: apply it to 4x fewer values

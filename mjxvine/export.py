@@ -70,7 +70,7 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
 
 def actor_arrays(actor_params: Any, meta: dict) -> tuple[dict[str, np.ndarray], dict]:
   """(arrays, full meta) of the policy file of actor params; see `export_actor`."""
-  from mjxvine.networks import CONV_LAYERS  # imports jax: only needed when exporting
+  from mjxvine.networks import CONV_LAYERS, tower_pad  # imports jax: only when exporting
 
   missing = [k for k in REQUIRED_META if k not in meta]
   if missing:
@@ -86,6 +86,8 @@ def actor_arrays(actor_params: Any, meta: dict) -> tuple[dict[str, np.ndarray], 
       "format_version": FORMAT_VERSION,
       "conv_layers": [[s, p] for s, p in CONV_LAYERS], "num_hidden": num_hidden,
   }
+  if "image_size" in full:  # the tower's edge padding (bottom, right), as it was trained
+    full["tower_pad"] = list(tower_pad(full["image_size"]))
   # numpy scalars/arrays in meta -> plain JSON values
   full = json.loads(json.dumps(full, default=lambda o: o.tolist() if hasattr(o, "tolist")
                                else str(o)))
@@ -164,6 +166,10 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
     x = node("Clip", [x, zero, top], "depth_clipped")
   # (B, H, W, 1) -> (B, 1, H, W): a reshape, since there is one channel.
   x = node("Reshape", [x, const("nchw_shape", np.array([-1, 1, h, w], np.int64))], "nchw")
+  ph, pw = (int(v) for v in meta.get("tower_pad", (0, 0)))
+  if ph or pw:  # repeat the bottom rows / right columns, as the tower was trained
+    x = node("Pad", [x, const("tower_pad", np.array([0, 0, 0, 0, 0, 0, ph, pw], np.int64))],
+             "padded", mode="edge")
   for i, (stride, pool) in enumerate(layers):
     k = arrays[f"tower/conv{i}/kernel"].astype(np.float32)  # (3, 3, C, F)
     if i == 0:

@@ -38,11 +38,54 @@ Obs = Any  # a dict {"depth", "state"} or a flat vector, with leading batch dims
 CONV_LAYERS = ((2, False), (1, True), (2, False), (1, False))
 
 
+def covering_size(n: int, layers=CONV_LAYERS) -> int:
+  """The smallest input size >= n of which every pixel reaches the tower's output.
+
+  A VALID conv of stride s drops the trailing (n - 3) % s rows, a 2x2 pool an odd last
+  row: only sizes whose every layer divides evenly are covered (8k + 1 for
+  `CONV_LAYERS`: 41, 65, 113).
+  """
+  def covers(m):
+    for stride, pool in layers:
+      if m < 3 or (m - 3) % stride:
+        return False
+      m = (m - 3) // stride + 1
+      if pool:
+        if m % 2:
+          return False
+        m //= 2
+    return m >= 1
+  m = n
+  while not covers(m):
+    m += 1
+  return m
+
+
+MIN_IMAGE_SIZE = covering_size(1)  # 33
+
+
+def tower_pad(hw: Sequence[int]) -> tuple[int, int]:
+  """(bottom, right) rows / columns by which the tower pads an (H, W) image."""
+  return tuple(covering_size(int(n)) - int(n) for n in hw)
+
+
+def pad_for_tower(x: jax.Array) -> jax.Array:
+  """Pads (N, H, W, C) at its bottom and right by repeating the edge, up to the covering
+  size (a departure from the paper's VALID tower, which never sees the last 7 columns of
+  a 112- or 40-wide image). Images of a covering size pass unchanged."""
+  ph, pw = tower_pad(x.shape[-3:-1])
+  if not (ph or pw):
+    return x
+  return jnp.pad(x, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
+
+
 class ConvTower(nn.Module):
   """Depth encoder: 4 conv 3x3 (strides 2, 1, [maxpool 2], 2, 1), ReLU, global avg pool.
 
-  Input (..., H, W, C) float32; output (..., features). For 112x112 the spatial sizes
-  are 112 -> 55 -> 53 -> 26 -> 12 -> 10.
+  Input (..., H, W, C) float32; output (..., features). The image is first padded at its
+  bottom and right edges (edge values) to the next covering size (`pad_for_tower`), so
+  that every pixel reaches the output. For 112x112 (padded to 113) the spatial sizes are
+  113 -> 56 -> 54 -> 27 -> 13 -> 11.
   """
   features: int = 32
   depth_scale: float = 1.0  # the input is multiplied by this (e.g. 1 / max_depth)
@@ -52,9 +95,10 @@ class ConvTower(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     batch_shape = x.shape[:-3]
     x = (x.reshape((-1,) + x.shape[-3:]) * self.depth_scale).astype(self.dtype)
-    if min(tower_output_size(x.shape[-3:-1])) < 1:
+    if min(x.shape[-3:-1]) < MIN_IMAGE_SIZE:
       raise ValueError(f"depth image {x.shape[-3:-1]} is too small for the conv tower "
-                       "(at least 33x33)")
+                       f"(at least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE})")
+    x = pad_for_tower(x)
     for i, (stride, pool) in enumerate(CONV_LAYERS):
       x = nn.Conv(self.features, (3, 3), (stride, stride), padding="VALID", dtype=self.dtype,
                   name=f"conv{i}")(x)
@@ -66,9 +110,10 @@ class ConvTower(nn.Module):
 
 
 def tower_output_size(hw: Sequence[int]) -> tuple[int, ...]:
-  """Spatial size after the last conv for an image of size hw (VALID padding)."""
+  """Spatial size after the last conv for an image of size hw (after `pad_for_tower`)."""
   out = []
   for n in hw:
+    n = covering_size(n)
     for stride, pool in CONV_LAYERS:
       n = (n - 3) // stride + 1
       n = n // 2 if pool else n

@@ -1,11 +1,14 @@
 """Networks: exact SPEC parameter counts, shapes, and the squashed Gaussian density."""
 
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from mjxvine import networks as nw
+from mjxvine.config import load_config
 
 LOW, HIGH = np.array([0.0, -1.0], np.float32), np.array([0.5, 1.0], np.float32)
 
@@ -33,7 +36,7 @@ def test_spec_parameter_counts(spec_nets):
 
 
 def test_tower_spatial_sizes():
-  """112 -> 55 -> 53 -> (pool) 26 -> 12 -> 10, VALID padding; 32 pooled features."""
+  """112 (padded to 113) -> 56 -> 54 -> (pool) 27 -> 13 -> 11; 32 pooled features."""
   tower = nw.ConvTower(32)
   x = jnp.zeros((1, 112, 112, 1))
   _, state = jax.eval_shape(
@@ -41,7 +44,7 @@ def test_tower_spatial_sizes():
       jax.random.PRNGKey(0))
   inter = state["intermediates"]
   sizes = [inter[f"conv{i}"]["__call__"][0].shape[1] for i in range(4)]
-  assert sizes == [55, 53, 12, 10]
+  assert sizes == [56, 54, 13, 11]
   assert inter["__call__"][0].shape == (1, 32)
 
 
@@ -66,8 +69,8 @@ def test_actor_critic_shapes_and_batch_dims():
 
 
 def test_tower_rejects_too_small_images(spec_nets):
-  assert nw.tower_output_size((112, 112)) == (10, 10)
-  assert nw.tower_output_size((33, 40)) == (1, 1) and nw.tower_output_size((32, 40))[0] == 0
+  assert nw.tower_output_size((112, 112)) == (11, 11)  # padded to 113
+  assert nw.tower_output_size((33, 40)) == (1, 2) and nw.MIN_IMAGE_SIZE == 33
   with pytest.raises(ValueError, match="too small"):
     jax.eval_shape(lambda k: nw.init_params(spec_nets, k, _vine_obs((1,), 32)),
                    jax.random.PRNGKey(0))
@@ -178,3 +181,37 @@ def test_bfloat16_compute_tracks_float32():
     assert g16.dtype == jnp.float32
     cos = float(g32 @ g16 / (jnp.linalg.norm(g32) * jnp.linalg.norm(g16)))
     assert cos > 0.98, cos
+
+
+def _input_reach(hw):
+  """|d tower / d pixel| summed over random images and features: (H, W) numpy."""
+  tower = nw.ConvTower(features=4)
+  x = jax.random.uniform(jax.random.PRNGKey(0), (3,) + tuple(hw) + (1,))
+  params = tower.init(jax.random.PRNGKey(1), x)
+  grad = jax.grad(lambda x: jnp.sum(tower.apply(params, x) ** 2))(x)
+  return np.abs(np.asarray(grad)).sum(axis=(0, 3))
+
+
+def test_covering_sizes():
+  assert [nw.covering_size(n) for n in (33, 40, 41, 64, 65, 112, 113)] == [
+      33, 41, 41, 65, 65, 113, 113]
+  assert nw.tower_pad((40, 40)) == (1, 1) and nw.tower_pad((41, 112)) == (0, 1)
+  # an image of a covering size goes through unchanged; others repeat their last row/column
+  x = jnp.arange(40 * 41, dtype=jnp.float32).reshape(1, 40, 41, 1)
+  padded = nw.pad_for_tower(x)
+  assert padded.shape == (1, 41, 41, 1)
+  np.testing.assert_array_equal(padded[0, 40], x[0, 39])
+  assert nw.pad_for_tower(padded) is padded
+
+
+# compare.yaml feeds brax's SAC vector observations (the depth pooled to 8x8): no tower.
+@pytest.mark.parametrize("config_file", sorted(
+    p.name for p in (Path(__file__).parent.parent / "experiments").glob("*.yaml")
+    if p.name != "compare.yaml"))
+def test_tower_sees_every_pixel_of_each_config(config_file):
+  """Every row and column of each committed config's depth image reaches the tower's
+  output (a non-zero gradient), at the config's own image size."""
+  cfg = load_config(Path(__file__).parent.parent / "experiments" / config_file)
+  reach = _input_reach((cfg.camera.height, cfg.camera.width))
+  assert (reach.sum(axis=0) > 0).all(), f"{config_file}: columns without gradient"
+  assert (reach.sum(axis=1) > 0).all(), f"{config_file}: rows without gradient"
