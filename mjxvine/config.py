@@ -37,6 +37,10 @@ class WorldConfig:
   spacing_m: tuple[float, float] = _f((0.7, 1.0), 0.2, 5.0, doc="in-row plant spacing range")
   jitter_frac: float = _f(0.1, 0.0, 0.5, doc="plant position jitter, fraction of spacing (triangular)")
   train_rows: int = _f(4, 2, 12, doc="plant rows in a train world (lanes = rows - 1)")
+  train_layout: str = _f("straight", choices=("straight", "varied"),
+                         doc="train worlds: straight rows without gaps (the paper), or rows "
+                         "that bend, widen their lanes and have single and wide gaps, each "
+                         "drawn per world (domain randomisation; test worlds are unchanged)")
   train_length_m: float = _f(20.0, 4.0, 60.0)
   test_length_m: float = _f(24.0, 8.0, 60.0)
   curve_amplitude_m: float = _f(0.7, 0.0, 2.0, doc="lateral wander of curved test rows")
@@ -156,6 +160,10 @@ class EnvConfig:
                            "EoR)")
   heading_lookahead_m: float = _f(2.0, 0.1, 50.0, doc="heading_target=lane: distance along "
                                   "the centreline from the robot's nearest point, m")
+  train_noise_factor: tuple[float, float] = _f(
+      (0.0, 0.0), 0.0, 100.0, doc="training episodes draw their depth noise factor k "
+      "uniformly from this range (domain randomisation); [0, 0]: camera.noise_factor always. "
+      "Evaluation always uses camera.noise_factor (or the noise sweep's)")
   start_directions: str = _f("both", choices=("both", "forward", "reverse"),
                              doc="travel directions of random starts (forward: +x, world "
                              "yaw near 0; reverse: yaw near +-pi, where the yaw input wraps)")

@@ -176,15 +176,17 @@ class VineyardEnv(Env):
     return self._start(pose, k_obs, k_next, episodes=jp.int32(0))
 
   def reset_to(self, rng: jax.Array, world, lane, direction, along=0.0, lateral=0.0,
-               yaw=0.0) -> State:
+               yaw=0.0, noise_factor=None) -> State:
     """An env at a given start: lane index (0-based), direction (+1 forward, -1 reverse),
     `along` (m from the lane's start in the travel direction), lateral offset (m) and yaw
     offset (rad). Used by the evaluation protocol: the yaw reference is the start heading,
-    without the training jitter."""
+    without the training jitter. `noise_factor` (may be traced): the episode's depth noise
+    factor instead of the env's."""
     k_obs, k_next = jax.random.split(rng)
     pose = self._pose(jp.int32(world), jp.int32(lane), jp.float32(direction),
                       jp.float32(along), jp.float32(lateral), jp.float32(yaw))
-    return self._start(pose, k_obs, k_next, episodes=jp.int32(0), ref_jitter=False)
+    return self._start(pose, k_obs, k_next, episodes=jp.int32(0), ref_jitter=False,
+                       noise_factor=noise_factor)
 
   def restart(self, state: State, new_start: jax.Array) -> State:
     """The episode after `state`'s: from its start pose, or from a new random one where
@@ -268,14 +270,18 @@ class VineyardEnv(Env):
     half = np.deg2rad(env.yaw_reference_jitter_deg)
     return pose["yaw"] + jax.random.uniform(key, (), minval=-half, maxval=half)
 
-  def _start(self, pose: dict, k_obs, k_next, episodes, ref_jitter: bool = True) -> State:
+  def _start(self, pose: dict, k_obs, k_next, episodes, ref_jitter: bool = True,
+             noise_factor=None) -> State:
     m, d = self._pose_data(pose)
     prev_action = jp.zeros(2, jp.float32)
     k_obs, k_ref = jax.random.split(k_obs)
     yaw_ref = self._yaw_reference(pose, k_ref, ref_jitter)
-    obs = self._observe(m, d, prev_action, k_obs, yaw_ref)
+    noise = (self._noise_factor(jax.random.fold_in(k_ref, 1), ref_jitter)
+             if noise_factor is None else jp.float32(noise_factor))
+    obs = self._observe(m, d, prev_action, k_obs, yaw_ref, noise)
     info = dict(
         pose=pose, rng=k_next, episodes=episodes, episode_steps=jp.int32(0), yaw_ref=yaw_ref,
+        noise_factor=noise,
         prev_action=prev_action, dist=jp.linalg.norm(d.qpos[:2] - pose["eor"]),
         truncation=jp.float32(0), outcome=jp.int32(RUNNING), episode_return=jp.float32(0),
         last_return=jp.float32(0), last_outcome=jp.int32(RUNNING), last_length=jp.int32(0))
@@ -285,9 +291,17 @@ class VineyardEnv(Env):
                  metrics=metrics, info=info)
 
   # ------------------------------------------------------------------ dynamics
-  def _observe(self, m, d, prev_action, key, yaw_ref) -> dict:
+  def _noise_factor(self, key: jax.Array, training: bool) -> jax.Array:
+    """The depth noise factor k of an episode: drawn from `env.train_noise_factor` for
+    training starts when that range is set, else the env's own."""
+    lo, hi = self.cfg.env.train_noise_factor
+    if not training or hi <= 0:
+      return jp.float32(self.noise_factor)
+    return jax.random.uniform(key, (), minval=lo, maxval=hi)
+
+  def _observe(self, m, d, prev_action, key, yaw_ref, noise_factor) -> dict:
     image = depth_cam.render_depth(self.camera, m, d)
-    noisy = depth_cam.add_noise(image, key, self.camera, self.noise_factor)
+    noisy = depth_cam.add_noise(image, key, self.camera, noise_factor)
     yaw = _wrap(_yaw(d.qpos[3:7]) - yaw_ref)
     return {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
 
@@ -358,7 +372,7 @@ class VineyardEnv(Env):
     truncation = (outcome == TIMEOUT) | (outcome == PHYSICS)
 
     k_obs, k_next = jax.random.split(info["rng"])
-    obs = self._observe(m, d, action, k_obs, info["yaw_ref"])
+    obs = self._observe(m, d, action, k_obs, info["yaw_ref"], info["noise_factor"])
     ret = info["episode_return"] + reward
     new_info = dict(info, rng=k_next, episode_steps=steps, prev_action=action, dist=dist,
                     truncation=truncation.astype(jp.float32), outcome=outcome,

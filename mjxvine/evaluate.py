@@ -140,16 +140,23 @@ def trajectory_errors(xy: np.ndarray, line: np.ndarray) -> np.ndarray:
 
 
 def rollout(env: VineyardEnv, policy: Policy, lanes, directions, key, max_steps: int,
-            noise_factor: float | None = None):
+            worlds=None, noise=None):
   """Runs one episode per (lane, direction) pair from the lane's start, batched.
 
+  lanes (0-based), directions (+1 / -1), and optionally worlds (indices into `env`'s
+  worlds; default 0) and noise (the depth noise factor of each episode; default the
+  env's): sequences of length B.
   Returns numpy arrays over time T and envs B: xy (T, B, 2), action (T, B, 2),
   alive (T, B) (step taken before the episode ended, inclusive), outcome (B,), steps (B,).
   """
   b = len(lanes)
+  worlds = np.zeros(b, np.int32) if worlds is None else np.asarray(worlds, np.int32)
+  noise = np.full(b, env.noise_factor, np.float32) if noise is None else np.asarray(
+      noise, np.float32)
   k_reset, k_run = jax.random.split(key)
-  reset = jax.jit(jax.vmap(lambda k, l, d: env.reset_to(k, 0, l, d)))
-  state = reset(jax.random.split(k_reset, b), jp.asarray(lanes), jp.asarray(directions))
+  reset = jax.jit(jax.vmap(lambda k, w, l, d, n: env.reset_to(k, w, l, d, noise_factor=n)))
+  state = reset(jax.random.split(k_reset, b), jp.asarray(worlds), jp.asarray(lanes),
+                jp.asarray(directions), jp.asarray(noise))
 
   def body(carry, k):
     state, alive = carry
@@ -219,6 +226,83 @@ def _summary(errs, acts, outcomes, steps, dt, covered_m, covered_frac) -> dict:
   }
 
 
+def rollout_cases(cfg: Config, policy_spec: str, worlds: list[Vineyard], cases, *,
+                  seed: int = 0, policy: Policy | None = None, which: str = "best"):
+  """One batched rollout of every case: (world index, lane (1-based), direction "F"/"R",
+  noise factor) tuples over `worlds`. Returns (raw, policy name) with raw = dict of
+  the `rollout` arrays (xy, act, alive, outcome, steps) and wall_s."""
+  # the protocol's episode limit, whatever the training episodes were
+  cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
+  env = VineyardEnv(cfg, list(worlds))
+  name = policy_spec
+  if policy is None:
+    policy, name = load_policy(policy_spec, env, which)
+  t0 = time.time()
+  xy, act, alive, outcome, steps = rollout(
+      env, policy, [l - 1 for _, l, _, _ in cases], [1.0 if d == "F" else -1.0
+                                                     for _, _, d, _ in cases],
+      jax.random.PRNGKey(seed), cfg.env.max_steps, worlds=[w for w, _, _, _ in cases],
+      noise=[n for _, _, _, n in cases])
+  raw = dict(xy=xy, act=act, alive=alive, outcome=outcome, steps=steps,
+             wall_s=time.time() - t0)
+  return raw, name
+
+
+def summarize(cfg: Config, world: Vineyard, cases, idx, raw: dict) -> dict:
+  """The rows (one per lane-direction, in case order), the overall figures and the
+  trajectories of the cases `idx` (indices into `cases` and `raw`), all on `world`.
+
+  overall: the pooled metrics of every trajectory point, plus the mean of the rows
+  (`mae_m_rows`, `rmse_m_rows`, `v_mean_rows`, `w_mean_rows`, ...): the paper's overall
+  row is the mean of its ten row values, so that is what compares with it."""
+  xy, act, alive, outcome, steps = (raw[k] for k in ("xy", "act", "alive", "outcome", "steps"))
+  keys = list(dict.fromkeys((cases[i][1], cases[i][2]) for i in idx))
+  rows, all_err, all_act, all_m, all_frac, trajs = [], [], [], [], [], []
+  for lane, direction in keys:
+    group = [i for i in idx if cases[i][1:3] == (lane, direction)]
+    line = world.lanes[lane - 1].centerline
+    length = arc_length(line)
+    errs = [trajectory_errors(xy[alive[:, i], i], line) for i in group]
+    acts = [act[alive[:, i], i] for i in group]
+    # A run that reached its EoR covered the lane, though it stops within the success
+    # radius of the line's end.
+    covered = [length if outcome[i] == SUCCESS else
+               min(lane_progress(xy[alive[:, i], i], line, direction), length) for i in group]
+    row = _summary(errs, acts, [int(outcome[i]) for i in group],
+                   [int(steps[i]) for i in group], cfg.env.control_dt, covered,
+                   [c / length for c in covered])
+    row.update(lane=lane, direction=direction, shape=world.lanes[lane - 1].shape,
+               lane_length_m=length, outcomes=[OUTCOMES[int(outcome[i])] for i in group])
+    rows.append(row)
+    all_err += errs
+    all_act += acts
+    all_m += covered
+    all_frac += [c / length for c in covered]
+    trajs += [{"lane": lane, "direction": direction, "outcome": OUTCOMES[int(outcome[i])],
+               "lane_covered_m": round(c, 3), "xy": xy[alive[:, i], i].round(3).tolist()}
+              for i, c in zip(group, covered)]
+  overall = _summary(all_err, all_act, [int(outcome[i]) for i in idx],
+                     [int(steps[i]) for i in idx], cfg.env.control_dt, all_m, all_frac)
+  overall.update(mean_of_rows(rows))
+  return {"robot": cfg.robot.name, "world": {"kind": world.kind, "seed": world.seed},
+          "overall": overall, "rows": rows, "wall_s": raw["wall_s"], "trajectories": trajs}
+
+
+def mean_of_rows(rows: list[dict]) -> dict:
+  """The paper's overall figures: means of the row values (MAE, RMSE, v, w and their
+  stds), `*_rows` keys. MAE/RMSE average the rows that have them (`rows_status`: "full"
+  when every row's runs all reached the EoR, else "partial", "n/a" when none has them)."""
+  out = {}
+  for key in ("v_mean", "v_std", "w_mean", "w_std"):
+    out[f"{key}_rows"] = float(np.mean([r[key] for r in rows]))
+  for key in ("mae_m", "rmse_m"):
+    vals = [r[key] for r in rows if r[key] is not None]
+    out[f"{key}_rows"] = float(np.mean(vals)) if vals else None
+  full = all(r["metrics_status"] == "full" for r in rows)
+  out["rows_status"] = "full" if full else "partial" if out["mae_m_rows"] is not None else "n/a"
+  return out
+
+
 def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
              noise_factor: float, lanes=None, directions=("F", "R"), seed: int = 0,
              policy: Policy | None = None, which: str = "best") -> dict:
@@ -228,47 +312,12 @@ def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
     raise ValueError(f"runs={runs}: need at least 1 run per lane and direction")
   if noise_factor < 0:
     raise ValueError(f"noise factor {noise_factor}: must be >= 0")
-  # the protocol's episode limit, whatever the training episodes were
-  cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
-  env = VineyardEnv(cfg, [world], noise_factor=noise_factor)
-  name = policy_spec
-  if policy is None:
-    policy, name = load_policy(policy_spec, env, which)
   lanes = list(range(1, len(world.lanes) + 1)) if lanes is None else list(lanes)
-  cases = [(l, d, r) for l in lanes for d in directions for r in range(runs)]
-  t0 = time.time()
-  xy, act, alive, outcome, steps = rollout(
-      env, policy, [l - 1 for l, _, _ in cases], [1.0 if d == "F" else -1.0 for _, d, _ in cases],
-      jax.random.PRNGKey(seed), cfg.env.max_steps)
-  wall = time.time() - t0
-  rows, all_err, all_act, all_m, all_frac, trajs = [], [], [], [], [], []
-  for (lane, direction) in [(l, d) for l in lanes for d in directions]:
-    idx = [i for i, c in enumerate(cases) if c[:2] == (lane, direction)]
-    line = world.lanes[lane - 1].centerline
-    length = arc_length(line)
-    errs = [trajectory_errors(xy[alive[:, i], i], line) for i in idx]
-    acts = [act[alive[:, i], i] for i in idx]
-    # A run that reached its EoR covered the lane, though it stops within the success
-    # radius of the line's end.
-    covered = [length if outcome[i] == SUCCESS else
-               min(lane_progress(xy[alive[:, i], i], line, direction), length) for i in idx]
-    row = _summary(errs, acts, [int(outcome[i]) for i in idx], [int(steps[i]) for i in idx],
-                   cfg.env.control_dt, covered, [c / length for c in covered])
-    row.update(lane=lane, direction=direction, shape=world.lanes[lane - 1].shape,
-               lane_length_m=length, outcomes=[OUTCOMES[int(outcome[i])] for i in idx])
-    rows.append(row)
-    all_err += errs
-    all_act += acts
-    all_m += covered
-    all_frac += [c / length for c in covered]
-    trajs += [{"lane": lane, "direction": direction, "outcome": OUTCOMES[int(outcome[i])],
-               "lane_covered_m": round(c, 3), "xy": xy[alive[:, i], i].round(3).tolist()}
-              for i, c in zip(idx, covered)]
-  overall = _summary(all_err, all_act, [int(o) for o in outcome], [int(s) for s in steps],
-                     cfg.env.control_dt, all_m, all_frac)
-  return {"policy": name, "robot": cfg.robot.name, "noise": noise_factor,
-          "world": {"kind": world.kind, "seed": world.seed}, "overall": overall, "rows": rows,
-          "wall_s": wall, "trajectories": trajs}
+  cases = [(0, l, d, noise_factor) for l in lanes for d in directions for _ in range(runs)]
+  raw, name = rollout_cases(cfg, policy_spec, [world], cases, seed=seed, policy=policy,
+                            which=which)
+  doc = summarize(cfg, world, cases, range(len(cases)), raw)
+  return {"policy": name, "noise": noise_factor, **doc}
 
 
 def _fmt(x, nd=3):
@@ -291,7 +340,13 @@ def results_markdown(doc: dict) -> str:
   lines = [f"# Evaluation: {doc['policy']} ({doc['robot']}, noise x{doc['noise']})", "",
            "| test row | shape | lane covered | MAE m (paper) | RMSE m (paper) | v m/s (paper) "
            "| w rad/s (paper) | success (paper) |", "|---|---|---|---|---|---|---|---|"]
-  for r in doc["rows"] + [dict(doc["overall"], lane="overall", direction="", shape="")]:
+  o = doc["overall"]
+  # the paper's overall row is the mean of its rows: so is ours (the pooled one below)
+  by_rows = dict(o, lane="overall", direction="", shape="mean of rows",
+                 mae_m=o["mae_m_rows"], rmse_m=o["rmse_m_rows"], metrics_status=o["rows_status"],
+                 v_mean=o["v_mean_rows"], v_std=o["v_std_rows"], w_mean=o["w_mean_rows"],
+                 w_std=o["w_std_rows"])
+  for r in doc["rows"] + [by_rows]:
     key = f"{r['lane']}{r['direction']}"
     p = PAPER.get(key)
     ps = (lambda i, nd=3: f" ({p[i]:.{nd}f})") if p else (lambda i, nd=3: "")
@@ -304,7 +359,9 @@ def results_markdown(doc: dict) -> str:
   lines += ["", "Lane covered: mean over the runs of the part of the lane's centreline driven "
             "from its start (a run that reached the EoR covers all of it). MAE/RMSE: n/a when "
             "no run of the row reached the EoR; (partial) when only some did: they then "
-            "include runs that stopped early and are not comparable to the paper's.",
+            "include runs that stopped early and are not comparable to the paper's. Overall: "
+            "the mean of the rows, as the paper's; pooled over every trajectory point: MAE "
+            f"{_metric(o, 'mae_m')} m, RMSE {_metric(o, 'rmse_m')} m.",
             "", f"Rollout wall-clock: {doc['wall_s']:.1f} s."]
   return "\n".join(lines) + "\n"
 
@@ -316,9 +373,10 @@ OUTCOME_COLOURS = {"success": "tab:blue", "collision": "tab:red", "left_lane": "
 
 def _title(doc: dict) -> str:
   o = doc["overall"]
-  status = o["metrics_status"]
+  status = o.get("rows_status", o["metrics_status"])
   metrics = ("MAE/RMSE n/a (no run reached the EoR)" if status == "n/a" else
-             f"MAE {_fmt(o['mae_m'])} m, RMSE {_fmt(o['rmse_m'])} m" +
+             f"MAE {_fmt(o.get('mae_m_rows', o['mae_m']))} m, RMSE "
+             f"{_fmt(o.get('rmse_m_rows', o['rmse_m']))} m (mean of rows)" +
              (" (partial: only some runs reached the EoR)" if status == "partial" else ""))
   return (f"{doc['policy']} - {doc['robot']}, noise x{doc['noise']}: {o['success']}/{o['runs']}"
           f" success, lane covered {o['lane_covered_frac']:.0%}\n{metrics}")
@@ -448,6 +506,9 @@ def main(argv=None) -> int:
                  help="runs per lane and direction, >= 1 (default: the config's eval.runs)")
   p.add_argument("--world", default=None, help="test-world seed or world .json file")
   p.add_argument("--sweep", choices=("noise", "robots"), default=None)
+  p.add_argument("--suite", choices=("paper",), default=None,
+                 help="paper: the paper's whole evaluation (test worlds 0-3 with --runs, "
+                      "default 5; the noise and robot tests) in one report (mjxvine.suite)")
   p.add_argument("--seed", type=int, default=0)
   p.add_argument("--out", required=True)
   add_config_args(p)
@@ -466,7 +527,13 @@ def main(argv=None) -> int:
       check_policy_file(args.policy, args.which)
     world = make_world(args.world or str(cfg.world.test_seed), cfg.world)
     out = Path(args.out)
-    if args.sweep == "noise":
+    if args.suite == "paper":
+      from mjxvine.suite import paper_suite
+      print(f"evaluating {args.policy}: the paper's suite (compiling first)...",
+            file=sys.stderr, flush=True)
+      paper_suite(cfg, args.policy, out, runs=args.runs or 5, seed=args.seed, which=args.which)
+      print((out / "report.md").read_text())
+    elif args.sweep == "noise":
       sweep_noise(cfg, args.policy, world, out, args.seed, args.which)
       print((out / "noise.md").read_text())
     elif args.sweep == "robots":

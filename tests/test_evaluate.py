@@ -122,6 +122,8 @@ def test_metrics_of_failed_runs_are_not_reported_as_comparable():
   assert none["lane_covered_frac"] == pytest.approx(0.15)
   assert none["lane_covered_m"] == pytest.approx(3.6)
   overall = _row(["success"] * 3 + ["collision"] * 3, [1, 1, 1, 0.25, 0.1, 0.2])
+  overall.update(evaluate.mean_of_rows([full, partial, none]))
+  assert overall["mae_m_rows"] == pytest.approx(0.1) and overall["rows_status"] == "partial"
   md = evaluate.results_markdown(_doc([full, partial, none], overall))
   lines = {l.split("|")[1].strip(): l for l in md.splitlines() if l.startswith("| ")}
   assert "| 100% (24.0 m) | 0.100 (0.076) | 0.100 (0.089) |" in lines["1F"]
@@ -165,3 +167,25 @@ def test_bad_runs_noise_and_policy_file(tmp_path, capsys):
   with pytest.raises(ValueError, match="runs=0"):
     evaluate.evaluate(load_config(), "oracle", generate_world("test", 0, load_config().world),
                       runs=0, noise_factor=1.0)
+
+
+def test_paper_suite_oracle(tmp_path):
+  """The whole suite in one call on two short test worlds: every table is there, the
+  privileged oracle drives every run to the end of its row, and the overall figure is
+  the mean of the rows (the paper's convention)."""
+  from mjxvine.suite import NOISE_FACTORS, paper_suite
+  cfg = load_config(None, ["world.test_length_m=8", "camera.width=16", "camera.height=12",
+                           "eval.max_steps=200"])
+  report = paper_suite(cfg, "oracle", tmp_path, runs=1, worlds=(2, 3))
+  for w in ("2", "3"):
+    o, rows = report["worlds"][w]["overall"], report["worlds"][w]["rows"]
+    assert o["success"] == o["runs"] == 10 and o["rows_status"] == "full"
+    assert o["mae_m_rows"] == pytest.approx(np.mean([r["mae_m"] for r in rows]))
+    assert (tmp_path / f"world{w}" / "trajectories.png").is_file()
+  assert sorted(report["noise"], key=float) == [str(k) for k in NOISE_FACTORS]
+  assert all(r["success"] == r["runs"] == 3 for k in report["noise"].values()
+             for r in k.values())
+  assert sorted(report["robots"]) == ["husky_1F", "husky_4F", "jackal_1F", "jackal_4F"]
+  assert all(r["success"] == 3 for r in report["robots"].values())
+  md = (tmp_path / "report.md").read_text()
+  assert "| 2 | 10/10 | none |" in md and "## Robots" in md and "## Test world 3" in md

@@ -112,6 +112,36 @@ def _row_offsets(kind: str, num_rows: int, length: float, amplitude: float):
   return [straight, straight, straight, hybrid, curved, curved]
 
 
+def _varied_offsets(rng: np.random.Generator, num_rows: int, length: float,
+                    amplitude: float):
+  """Row offsets of a `train_layout: varied` train world: the test world's shapes,
+  recombined per world. A bend that every row shares (straight, hybrid, sine or curved,
+  either side, amplitude in [0, A]) keeps the lanes' width; on top of it each lane is,
+  with probability 1/2, widened by a hybrid or sine bump of its far row (the widenings
+  together at most A), as lanes 3 and 4 of the test world are. So rows stay within the
+  terrain of `world_extent` and no lane is narrower than the drawn inter-row distance.
+  """
+  def shape(name, start):
+    def f(x):
+      t = np.clip((x - start) / (length - start), 0.0, 1.0)
+      rise = (1 - np.cos(np.pi * t)) / 2  # 0 before `start`, smooth to 1 at the end
+      sine = np.sin(np.pi * x / length) ** 2
+      return {"straight": 0 * x, "hybrid": rise, "sine": sine, "curved": rise + sine}[name]
+    return f
+
+  names = ("straight", "hybrid", "sine", "curved")
+  bend = shape(names[rng.integers(4)], rng.uniform(0.3, 0.7) * length)
+  bend_a = rng.uniform(0.0, amplitude) * rng.choice([-1.0, 1.0])
+  widen = [(shape(names[rng.integers(1, 3)], rng.uniform(0.3, 0.7) * length),
+            rng.uniform(0.0, amplitude) * (rng.uniform() < 0.5))
+           for _ in range(num_rows - 1)]
+  total = sum(a for _, a in widen)
+  scale = min(1.0, amplitude / total) if total > 0 else 0.0
+  def row(j):
+    return lambda x: bend_a * bend(x) + sum(scale * a * f(x) for f, a in widen[:j])
+  return [row(j) for j in range(num_rows)]
+
+
 def _terrain(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
   """Bumps of +- amplitude on a `terrain_bump_m` grid, bilinearly refined to the cell size."""
   xmin, xmax, ymin, ymax = extent
@@ -136,16 +166,18 @@ def _terrain(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
   return h
 
 
-def _pick_gaps(rng, kind, row_of_slot, x_index, n_per_row, num_rows):
-  """Boolean mask of plants removed as gaps (test world only).
+def _pick_gaps(rng, kind, row_of_slot, x_index, n_per_row, num_rows, varied=False):
+  """Boolean mask of plants removed as gaps (test worlds and varied train worlds).
 
   Single gaps: 4 random plants away from the row ends. Wide gaps: 2-3 consecutive plants,
-  one in a row bounding lane 3 (row 3) and one bounding lane 5 (row 5, the outer row).
+  in the test world one in a row bounding lane 3 (row 3) and one bounding lane 5 (row 5,
+  the outer row); in a varied train world in two random rows.
   """
   removed = np.zeros(len(row_of_slot), bool)
-  if kind != "test":
-    return removed
-  for row in (3, 5):
+  if (kind != "test" and not varied) or (varied and min(n_per_row) < 12):
+    return removed  # (short varied rows, as in tests, keep every plant)
+  wide_rows = (3, 5) if kind == "test" else rng.choice(num_rows, 2, replace=False)
+  for row in wide_rows:
     n = n_per_row[row]
     width = int(rng.integers(2, 4))
     start = int(rng.integers(n // 4, 3 * n // 4 - width))
@@ -171,7 +203,11 @@ def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
   length = cfg.train_length_m if kind == "train" else cfg.test_length_m
   inter_row = float(rng.uniform(*cfg.inter_row_m))
   spacing = float(rng.uniform(*cfg.spacing_m))
-  offsets = _row_offsets(kind, num_rows, length, cfg.curve_amplitude_m)
+  varied = kind == "train" and cfg.train_layout == "varied"
+  if varied:
+    offsets = _varied_offsets(rng, num_rows, length, cfg.curve_amplitude_m)
+  else:
+    offsets = _row_offsets(kind, num_rows, length, cfg.curve_amplitude_m)
   row_y0 = (np.arange(num_rows) - (num_rows - 1) / 2) * inter_row
 
   n = int(np.floor(length / spacing)) + 1
@@ -195,10 +231,11 @@ def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
                           rng.uniform(*cfg.canopy_width_m, num) / 2,
                           (canopy_top - trunk_height) / 2], -1)
   canopy_z = (canopy_top + trunk_height) / 2
-  keep = ~_pick_gaps(rng, kind, plant_row, x_index, [n] * num_rows, num_rows)
+  keep = ~_pick_gaps(rng, kind, plant_row, x_index, [n] * num_rows, num_rows, varied)
 
   xy, row = plant_xy[keep], plant_row[keep]
-  shapes = TEST_LANE_SHAPES if kind == "test" else ("straight",) * (num_rows - 1)
+  shapes = TEST_LANE_SHAPES if kind == "test" else (
+      ("varied" if varied else "straight"),) * (num_rows - 1)
   lanes = tuple(Lane(k, shapes[k - 1], k - 1, k, *_centerline(xy, row, k, length))
                 for k in range(1, num_rows))
   extent = world_extent(cfg)
