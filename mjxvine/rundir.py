@@ -211,7 +211,9 @@ class StopSignals:
 
   def __exit__(self, *exc):
     for s, handler in self.previous.items():
-      signal.signal(s, handler)
+      # None: a handler installed outside Python (JAX's preemption notifier), which
+      # Python cannot reinstall
+      signal.signal(s, signal.SIG_DFL if handler is None else handler)
     self.previous = {}
 
 
