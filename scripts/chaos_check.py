@@ -24,7 +24,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ["--config", "experiments/smoke.yaml", "--no-eval", "--set",
-           "train.total_env_steps=4000", "--set", "train.checkpoint_every_chunks=2"]
+           "train.total_env_steps=16000", "--set", "train.checkpoint_every_chunks=2"]
 
 
 def main(argv=None) -> int:
