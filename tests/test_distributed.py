@@ -57,13 +57,13 @@ def runs(tmp_path_factory):
   outs = []
   try:
     for p in procs:
-      outs.append(p.communicate(timeout=1200))
+      outs.append(p.communicate(timeout=1800))
   finally:
     for p in procs:
       if p.poll() is None:
         p.kill()
   single = subprocess.run(_cmd(root / "one"), cwd=ROOT, env=_env(2), capture_output=True,
-                          text=True, timeout=1200)
+                          text=True, timeout=1800)
   return root, [p.returncode for p in procs], outs, single
 
 
