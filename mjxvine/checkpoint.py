@@ -32,12 +32,17 @@ class Checkpoints:
   falls back to the previous step, with a message, when the newest is corrupt or
   partial."""
 
-  def __init__(self, run_dir: Path, save_replay: bool):
+  def __init__(self, run_dir: Path, save_replay: bool, clean: bool = False):
+    """`clean`: first remove the temporary step directories a killed or failed save left
+    (only the one writer of the run dir may: see `mjxvine.rundir.RunLock`)."""
     import orbax.checkpoint as ocp
     self.ocp = ocp
     self.dir = (run_dir / "checkpoints").resolve()
     self.best_json = run_dir / "best.json"
     self.save_replay = save_replay
+    self.primary = True
+    if clean:
+      self.removed = remove_partial_steps(self.dir)
     options = lambda keep: ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
     self.manager = ocp.CheckpointManager(self.dir, options=options(3))
     self.best_manager = ocp.CheckpointManager(self.dir / "best", options=options(1))
@@ -62,15 +67,27 @@ class Checkpoints:
     return ts if self.save_replay else ts.replace(buffer=template.buffer)
 
   def save(self, step: int, ts) -> None:
-    self.manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)))
-    self.manager.wait_until_finished()
+    """Writes step `step` and waits until it is complete. A failed write (disk full, ...)
+    raises `mjxvine.rundir.WriteError` in one line; the earlier steps stay intact."""
+    self._save(self.manager, step, ts, f"checkpoint {step}")
 
   def save_best(self, step: int, ts, scores: dict) -> None:
     """Keeps `ts` as the best checkpoint, with its evaluation `scores`."""
-    self.best_manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)),
-                           force=True)
-    self.best_manager.wait_until_finished()
-    self.best_json.write_text(json.dumps({"chunk": step, **scores}))
+    self._save(self.best_manager, step, ts, f"best checkpoint {step}", force=True)
+    if self.primary:
+      _write_atomic(self.best_json, json.dumps({"chunk": step, **scores}))
+
+  def _save(self, manager, step: int, ts, what: str, **kw) -> None:
+    from mjxvine.rundir import write_failure
+    try:
+      with _orbax_quiet():
+        manager.save(step, args=self.ocp.args.StandardSave(self._payload(ts)), **kw)
+        manager.wait_until_finished()
+    except Exception as e:  # noqa: BLE001 - orbax and tensorstore fail in many types
+      error = write_failure(manager.directory, what, e)
+      if self.primary:
+        remove_partial_steps(Path(manager.directory))  # give the space back
+      raise error from None
 
   def best_scores(self) -> dict | None:
     """The scores of the best checkpoint so far (None before the first evaluation)."""
@@ -95,6 +112,42 @@ class Checkpoints:
         continue
       return step, self._unpayload(payload, template)
     return None
+
+
+def remove_partial_steps(manager_dir: Path) -> list[Path]:
+  """Removes the temporary step directories ("<step>.orbax-checkpoint-tmp*") that orbax
+  leaves when a save is killed or fails, under a CheckpointManager dir and its best/.
+  Returns those removed. Finished steps are never touched."""
+  import shutil
+  removed = []
+  for d in (Path(manager_dir), Path(manager_dir) / "best"):
+    for tmp in d.glob("*.orbax-checkpoint-tmp*") if d.is_dir() else ():
+      shutil.rmtree(tmp, ignore_errors=True)
+      removed.append(tmp)
+  return removed
+
+
+def _write_atomic(path: Path, text: str) -> None:
+  tmp = path.with_name(path.name + ".tmp")
+  tmp.write_text(text)
+  tmp.replace(path)
+
+
+class _orbax_quiet:
+  """Silences orbax's own logging (absl) during a save: a failed write makes it log
+  hundreds of lines of tracebacks for one cause, which `Checkpoints._save` reports in
+  one line instead."""
+
+  def __enter__(self):
+    import logging
+    self.loggers = [logging.getLogger(n) for n in ("absl", "orbax", "asyncio")]
+    self.levels = [l.level for l in self.loggers]
+    for l in self.loggers:
+      l.setLevel(logging.CRITICAL)
+
+  def __exit__(self, *exc):
+    for l, level in zip(self.loggers, self.levels):
+      l.setLevel(level)
 
 
 def _item_of(step: Path) -> Path | None:

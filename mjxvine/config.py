@@ -400,9 +400,16 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
     if not path.is_file():
       raise ConfigError(f"config file not found: {path}")
     try:
-      data = yaml.safe_load(path.read_text()) or {}
+      data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
       raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None
+    if data is None:
+      # An empty file is more likely a mistake than a wish for the defaults (a 112x112
+      # run with a multi-GB replay): "{}" says the latter.
+      raise ConfigError(f"{path}: empty (write {{}} to train the defaults)")
+    if not isinstance(data, dict):
+      raise ConfigError(f"{path}: expected a mapping of sections (world:, env:, sac:, ...), "
+                        f"got a {type(data).__name__}")
   for item in overrides:
     if "=" not in item:
       raise ConfigError(f"--set {item!r}: expected section.key=value")

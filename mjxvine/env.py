@@ -126,7 +126,8 @@ class VineyardEnv(Env):
     self.action_low, self.action_high = jp.array(low, jp.float32), jp.array(high, jp.float32)
     data = mujoco.MjData(self.mj_model)
     mujoco.mj_forward(self.mj_model, data)
-    self._data0 = mjx.put_data(self.mj_model, data)
+    # on this process's device (see `worlds.batch.batch_models`)
+    self._data0 = mjx.put_data(self.mj_model, data, device=jax.local_devices()[0])
     self._hfield = (int(self.mj_model.hfield_nrow[0]), int(self.mj_model.hfield_ncol[0]))
     self._terrain_geom = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_GEOM, "terrain")
 

@@ -14,16 +14,20 @@ program); envs and replay are split over the devices (`mjxvine.parallel`).
 
 Run directory: config.yaml (resolved), metrics.jsonl, TensorBoard events (tb/),
 checkpoints/ (orbax, `mjxvine.checkpoint`), learning_curve.png, eval/ (the final evaluation
-report).
+report), lock (held while a process trains there). Signals, the lock, log truncation on
+resume, write failures and the exit codes: `mjxvine.rundir`.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import errno
 import functools
 import json
 import math
+import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -39,6 +43,9 @@ from mjxvine.checkpoint import Checkpoints
 from mjxvine.config import (Config, add_config_args, changed_keys, config_from_args,
                             enable_compile_cache, load_config, replace, to_yaml)
 from mjxvine.protocol import TrainEnv
+from mjxvine.rundir import (EXIT_NON_FINITE, EXIT_USAGE, EXIT_WRITE, Interrupted, RunDirBusy,
+                            RunLock, StopSignals, WriteError, busy_message, clear_events,
+                            exit_code, lock_holder, truncate_metrics, write_failure)
 from mjxvine.trainer import (NonFiniteError, compile_key, compiled, init_members,
                              sweep_members)
 
@@ -86,14 +93,17 @@ def compiled_trainer(cfg: Config, seeds: int = 1, env=None):
 class Logger:
   """metrics.jsonl + TensorBoard (tensorboardX) + a progress line."""
 
-  def __init__(self, run_dir: Path, total: int, start: int, enabled: bool = True):
+  def __init__(self, run_dir: Path, total: int, start: int, enabled: bool = True,
+               purge_step: int | None = None):
+    """`purge_step`: on a resume, the first env step after the restored checkpoint;
+    TensorBoard drops the events of the stopped run from there on."""
     self.enabled = enabled
     if not enabled:
       return
     from tensorboardX import SummaryWriter
     from tqdm import tqdm
     self.jsonl = open(run_dir / "metrics.jsonl", "a")
-    self.tb = SummaryWriter(str(run_dir / "tb"))
+    self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=purge_step)
     self.bar = tqdm(total=total, initial=start, unit="step", dynamic_ncols=True,
                     mininterval=2.0, file=sys.stderr)
     self.last_eval = ""
@@ -120,6 +130,7 @@ class Logger:
   def close(self):
     if not self.enabled:
       return
+    self.enabled = False
     self.bar.close()
     self.tb.close()
     self.jsonl.close()
@@ -246,135 +257,233 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   `train.eval_starts` fresh starts per direction (`mjxvine.starts`); the best of these
   evaluations (member 0) is kept as checkpoints/best, and the closing report
   (`evaluate_at_end`) evaluates that policy on the test world.
+
+  The run holds RUN_DIR's lock throughout (`rundir.RunLock`; `rundir.RunDirBusy` if
+  another process has it). A resume cuts metrics.jsonl and the TensorBoard events back to
+  the restored checkpoint. SIGINT / SIGTERM end the current chunk, write a checkpoint and
+  raise `rundir.Interrupted`; a failed checkpoint write raises `rundir.WriteError`. With
+  several processes (`jax.distributed`) every process calls this; all of them enter the
+  same collectives, process 0 alone writes logs and prints.
   """
-  say = _say(quiet)
-  run_dir.mkdir(parents=True, exist_ok=True)
-  (run_dir / "config.yaml").write_text(to_yaml(cfg))
-  members = sweep_members(cfg)
-  seeds = len(members)
-  vineyard = env is None
-  if vineyard:
-    env = _default_env(compile_key(cfg))
-  sac, init_fn, chunk_fn = compiled_trainer(cfg, seeds, env)
-  ts = init_members(cfg, init_fn, members)
-  nbytes = sac_lib.buffer_nbytes(ts.buffer)
-  ckpt = Checkpoints(run_dir, cfg.train.save_replay)
-  steps_per_chunk = cfg.env.num_envs * cfg.train.iters_per_chunk
-  total_chunks = math.ceil(cfg.train.total_env_steps / steps_per_chunk)
-  chunk_index = 0
-  if resume:
-    restored = ckpt.restore(ts)
-    tell = _say(False)  # what a resume found is said even when quiet
-    if restored is None:
-      tell(f"no usable checkpoint in {run_dir}; starting afresh")
-    else:
-      chunk_index, ts = restored
-      if chunk_index >= total_chunks:
-        row = _last_row(run_dir)
-        tell(f"{run_dir} is complete: {int(np.max(ts.env_steps))} env steps of "
-            f"{cfg.train.total_env_steps}; raise train.total_env_steps to train on. "
-            f"Its last figures: {_summary_line(row, ckpt.best_scores())}")
-        return row
-      tell(f"resumed {run_dir} at chunk {chunk_index} ({int(np.max(ts.env_steps))} env steps)")
-  ts = ts.replace(budget=jp.full_like(ts.budget, cfg.train.total_env_steps))
-  say(f"run {run_dir}: {seeds} seed(s) x {cfg.env.num_envs} envs, {total_chunks} chunks of "
-      f"{steps_per_chunk} env steps; replay {nbytes / 2**20:.1f} MiB per seed "
-      f"({nbytes / max(cfg.sac.buffer_size, 1):.0f} B/transition); device "
-      f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}")
-  # The evaluations from fresh starts: every eval_every_chunks chunks and at the end, or
-  # only at the end when the closing report is asked for.
-  start_eval = (start_evaluator(cfg, seeds)
-                if vineyard and (evaluate_at_end or cfg.train.eval_every_chunks) else None)
-  eval_key = jax.random.PRNGKey(cfg.train.seed + 1)  # the same starts at every evaluation
-
-  def evaluate_starts(ts) -> list[dict]:
-    """Evaluates every member; saves the state of all members as checkpoints/best when
-    member 0's scores are the best so far."""
-    t0 = time.time()
-    out = start_eval(starts_params(ts.learner.policy_params, starts.ACTOR, seeds), eval_key)
-    rows = [_member_scores(out, s) for s in range(seeds)]
-    best = ckpt.best_scores()
-    if best is None or _score(rows[0]) > _score(best):
-      ckpt.save_best(chunk_index, ts, {"env_steps": int(np.max(ts.env_steps)), **rows[0]})
-      rows[0]["best"] = True
-    say(f"evaluated {2 * cfg.train.eval_starts} fresh starts in {time.time() - t0:.0f} s: "
-        f"{_eval_line(rows[0])}" + (" (new best)" if rows[0].get("best") else ""))
-    return rows
-
-  # Multi-host: every process runs the same program; process 0 writes logs and reports.
   primary = jax.process_index() == 0
-  logger = Logger(run_dir, total_chunks * steps_per_chunk, chunk_index * steps_per_chunk,
-                  enabled=primary)
-  last_row, t_compile, t_start, evaluated = {}, None, time.time(), -1
-  every = cfg.train.eval_every_chunks
+  run_dir.mkdir(parents=True, exist_ok=True)
+  lock, busy = None, None
+  if primary:
+    try:
+      lock = RunLock(run_dir).acquire()
+    except RunDirBusy as e:
+      busy = e
+  if _max_over_processes(int(busy is not None)):  # every process refuses, or none
+    raise busy or RunDirBusy(f"{run_dir} is in use (process 0 holds no lock)")
   try:
-    while chunk_index < total_chunks:
-      if cfg.train.max_minutes and time.time() - t_start > 60 * cfg.train.max_minutes:
-        say(f"train.max_minutes = {cfg.train.max_minutes} reached after chunk "
-            f"{chunk_index}: stopping")
-        if ckpt.manager.latest_step() != chunk_index:
-          ckpt.save(chunk_index, ts)
-        break
-      if t_compile is None:
-        say("compiling the training iteration (the first chunk includes it)...")
-      t0 = time.time()
-      ts, m = chunk_fn(ts)
-      m = jax.device_get(m)
-      dt = time.time() - t0
-      if t_compile is None:
-        t_compile = dt
-        say(f"first chunk done in {dt:.0f} s, compilation included")
-      if not np.all(m["finite"]) or not all(np.all(np.isfinite(v)) for v in m.values()):
-        bad = [k for k, v in m.items() if not np.all(np.isfinite(v))]
-        raise NonFiniteError(
-            f"non-finite {'parameters' if not np.all(m['finite']) else ', '.join(bad)} at "
-            f"env step {int(np.max(ts.env_steps))} (chunk {chunk_index + 1}); the last good "
-            f"checkpoint is chunk {ckpt.manager.latest_step()} in {ckpt.dir}")
-      chunk_index += 1
-      host = jax.device_get((ts.env_steps, ts.episodes, ts.log_episodes, ts.log_return,
-                             ts.log_success, ts.log_timeout, ts.log_speed, ts.log_terms))
-      evals = [{}] * seeds
-      if start_eval is not None and ((every and chunk_index % every == 0) or
-                                     chunk_index == total_chunks):
-        evals, evaluated = evaluate_starts(ts), chunk_index
-      for s in range(seeds):
-        get = (lambda x: np.reshape(x, (-1,))[s])
-        eps_done = int(get(host[2]))
-        per_episode = lambda x: float(get(x) / eps_done) if eps_done else None
-        row = {
-            **members[s], "member": s,
-            "chunk": chunk_index, "env_steps": int(get(host[0])),
-            "episodes": int(get(host[1])),
-            "return_mean": per_episode(host[3]), "success_rate": per_episode(host[4]),
-            "timeout_rate": per_episode(host[5]), "v_mean": float(get(host[6])) / steps_per_chunk,
-            "sps": steps_per_chunk / dt,
-            "ups": cfg.train.iters_per_chunk * cfg.sac.grad_steps_per_iter / dt,
-            "chunk_s": dt, "compile_s": t_compile,
-            "wall": datetime.datetime.now().isoformat(timespec="seconds"),
-            **evals[s],
-        }
-        row.update({k: float(get(v)) / steps_per_chunk for k, v in host[7].items()})
-        row.update({k: float(get(v)) for k, v in m.items() if k != "finite"})
-        if s == 0:
-          last_row = row
-        logger.log(row)
-      ts = ts.reset_log()
-      if chunk_index % cfg.train.checkpoint_every_chunks == 0 or chunk_index == total_chunks:
-        ckpt.save(chunk_index, ts)
-    if start_eval is not None and evaluated != chunk_index and primary:
-      last_row.update(evaluate_starts(ts)[0])  # stopped early: evaluate the last policy
+    return _train(cfg, run_dir, resume, evaluate_at_end, quiet or not primary, env, primary)
   finally:
-    logger.close()
-  if not primary:
+    if lock is not None:
+      lock.release()
+
+
+def _max_over_processes(value: int) -> int:
+  """The largest `value` over all processes: a collective that every process must enter
+  (the value itself with one process)."""
+  if jax.process_count() == 1:
+    return value
+  from jax.experimental import multihost_utils
+  return int(np.max(multihost_utils.process_allgather(np.int32(value))))
+
+
+def _preempted(step: int) -> bool:
+  """Whether JAX's preemption service (a cluster's notice, with `jax.distributed`) asks
+  every process to stop at this step (a collective; False with one process)."""
+  if jax.process_count() == 1:
+    return False
+  from jax.experimental import multihost_utils
+  try:
+    return bool(multihost_utils.reached_preemption_sync_point(step))
+  except RuntimeError:  # the preemption service is off
+    return False
+
+
+def _local(tree):
+  """A replicated (possibly multi-process) pytree as numpy arrays of this process."""
+  return jax.tree.map(lambda x: np.asarray(x.addressable_data(0))
+                      if isinstance(x, jax.Array) else x, tree)
+
+
+def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quiet: bool,
+           env, primary: bool) -> dict:
+  say = _say(quiet)
+  phase = ["setup"]  # a signal stops at once but while training (nothing to keep)
+  stops = StopSignals(stop_now=lambda: phase[0] != "training", say=say)
+  with stops:
+    if primary:
+      (run_dir / "config.yaml").write_text(to_yaml(cfg))
+    members = sweep_members(cfg)
+    seeds = len(members)
+    vineyard = env is None
+    if vineyard:
+      env = _default_env(compile_key(cfg))
+    sac, init_fn, chunk_fn = compiled_trainer(cfg, seeds, env)
+    ts = init_members(cfg, init_fn, members)
+    nbytes = sac_lib.buffer_nbytes(ts.buffer)
+    ckpt = Checkpoints(run_dir, cfg.train.save_replay, clean=primary)
+    ckpt.primary = primary
+    steps_per_chunk = cfg.env.num_envs * cfg.train.iters_per_chunk
+    total_chunks = math.ceil(cfg.train.total_env_steps / steps_per_chunk)
+    chunk_index = 0
+    tell = _say(not primary)  # what a resume found is said even when quiet
+    if primary and getattr(ckpt, "removed", None):
+      tell(f"removed {len(ckpt.removed)} partial checkpoint(s) that an interrupted or "
+           f"failed save left: {', '.join(p.name for p in ckpt.removed)}")
+    if resume:
+      restored = ckpt.restore(ts)
+      if restored is None:
+        tell(f"no usable checkpoint in {run_dir}; starting afresh")
+      else:
+        chunk_index, ts = restored
+        if chunk_index >= total_chunks:
+          row = _last_row(run_dir)
+          tell(f"{run_dir} is complete: {int(np.max(ts.env_steps))} env steps of "
+               f"{cfg.train.total_env_steps}; raise train.total_env_steps to train on. "
+               f"Its last figures: {_summary_line(row, ckpt.best_scores())}")
+          return row
+        tell(f"resumed {run_dir} at chunk {chunk_index} ({int(np.max(ts.env_steps))} env "
+             "steps)")
+    # The logs follow the checkpoint: rows written after it (by the run that stopped)
+    # are dropped, so that every chunk appears once and the curves run forward.
+    restored_steps = int(np.max(ts.env_steps)) if chunk_index else 0
+    if primary:
+      dropped = truncate_metrics(run_dir / "metrics.jsonl", restored_steps)
+      if chunk_index == 0:
+        clear_events(run_dir / "tb")
+      if dropped:
+        tell(f"dropped {dropped} row(s) of metrics.jsonl past the checkpoint "
+             f"({restored_steps} env steps); TensorBoard purges them too")
+    ts = ts.replace(budget=jp.full_like(ts.budget, cfg.train.total_env_steps))
+    say(f"run {run_dir}: {seeds} seed(s) x {cfg.env.num_envs} envs, {total_chunks} chunks "
+        f"of {steps_per_chunk} env steps; replay {nbytes / 2**20:.1f} MiB per seed "
+        f"({nbytes / max(cfg.sac.buffer_size, 1):.0f} B/transition); device "
+        f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}"
+        + (f" over {jax.process_count()} processes" if jax.process_count() > 1 else ""))
+    # The evaluations from fresh starts: every eval_every_chunks chunks and at the end, or
+    # only at the end when the closing report is asked for.
+    start_eval = (start_evaluator(cfg, seeds)
+                  if vineyard and (evaluate_at_end or cfg.train.eval_every_chunks) else None)
+    eval_key = jax.random.PRNGKey(cfg.train.seed + 1)  # the same starts at every evaluation
+    # read once: every process decides on the same scores (process 0 rewrites the file)
+    best_scores = [ckpt.best_scores()]
+
+    def evaluate_starts(ts) -> list[dict]:
+      """Evaluates every member; saves the state of all members as checkpoints/best when
+      member 0's scores are the best so far."""
+      t0 = time.time()
+      out = start_eval(starts_params(ts.learner.policy_params, starts.ACTOR, seeds), eval_key)
+      rows = [_member_scores(out, s) for s in range(seeds)]
+      best = best_scores[0]
+      if best is None or _score(rows[0]) > _score(best):
+        scores = {"env_steps": int(np.max(ts.env_steps)), **rows[0]}
+        ckpt.save_best(chunk_index, ts, scores)
+        best_scores[0] = {"chunk": chunk_index, **scores}
+        rows[0]["best"] = True
+      say(f"evaluated {2 * cfg.train.eval_starts} fresh starts in {time.time() - t0:.0f} s: "
+          f"{_eval_line(rows[0])}" + (" (new best)" if rows[0].get("best") else ""))
+      return rows
+
+    logger = Logger(run_dir, total_chunks * steps_per_chunk, chunk_index * steps_per_chunk,
+                    enabled=primary, purge_step=restored_steps + 1 if chunk_index else None)
+    last_row, t_compile, t_start, evaluated = {}, None, time.time(), -1
+    every = cfg.train.eval_every_chunks
+    saved, signum = chunk_index, 0
+    phase[0] = "training"
+    try:
+      while chunk_index < total_chunks:
+        if cfg.train.max_minutes and time.time() - t_start > 60 * cfg.train.max_minutes:
+          say(f"train.max_minutes = {cfg.train.max_minutes} reached after chunk "
+              f"{chunk_index}: stopping")
+          break
+        if t_compile is None:
+          say("compiling the training iteration (the first chunk includes it)...")
+        t0 = time.time()
+        ts, m = chunk_fn(ts)
+        m = jax.device_get(m)
+        dt = time.time() - t0
+        if t_compile is None:
+          t_compile = dt
+          say(f"first chunk done in {dt:.0f} s, compilation included")
+        if not np.all(m["finite"]) or not all(np.all(np.isfinite(v)) for v in m.values()):
+          bad = [k for k, v in m.items() if not np.all(np.isfinite(v))]
+          raise NonFiniteError(
+              f"non-finite {'parameters' if not np.all(m['finite']) else ', '.join(bad)} at "
+              f"env step {int(np.max(ts.env_steps))} (chunk {chunk_index + 1}); the last good "
+              f"checkpoint is chunk {ckpt.manager.latest_step()} in {ckpt.dir}")
+        chunk_index += 1
+        host = jax.device_get((ts.env_steps, ts.episodes, ts.log_episodes, ts.log_return,
+                               ts.log_success, ts.log_timeout, ts.log_speed, ts.log_terms))
+        evals = [{}] * seeds
+        if start_eval is not None and ((every and chunk_index % every == 0) or
+                                       chunk_index == total_chunks):
+          evals, evaluated = evaluate_starts(ts), chunk_index
+        for s in range(seeds):
+          row = _row(cfg, members[s], s, chunk_index, host, m, evals[s], dt, t_compile,
+                     steps_per_chunk)
+          if s == 0:
+            last_row = row
+          logger.log(row)
+        ts = ts.reset_log()
+        if chunk_index % cfg.train.checkpoint_every_chunks == 0 or chunk_index == total_chunks:
+          ckpt.save(chunk_index, ts)
+          saved = chunk_index
+        # the same decision in every process: a signal to any of them stops all
+        signum = _max_over_processes(stops.requested) or (
+            signal.SIGTERM if _preempted(chunk_index) else 0)
+        if signum:
+          break
+      if saved != chunk_index:  # stopped early (a signal, train.max_minutes)
+        ckpt.save(chunk_index, ts)
+      phase[0] = "closing"
+      if signum:
+        logger.close()
+        if primary:
+          plot_learning_curve(run_dir)
+        raise Interrupted(signum, f"stopped by {signal.Signals(signum).name} after chunk "
+                          f"{chunk_index} ({int(np.max(ts.env_steps))} env steps); "
+                          f"checkpoint {chunk_index} written")
+      if start_eval is not None and evaluated != chunk_index:
+        last_row.update(evaluate_starts(ts)[0])  # stopped early: evaluate the last policy
+    finally:
+      logger.close()
+    if primary:
+      plot_learning_curve(run_dir)
+    best = best_scores[0]
+    if best is not None:
+      last_row.update({f"best_{k}": v for k, v in best.items()})
+    if vineyard and evaluate_at_end:
+      _closing_report(cfg, run_dir, sac, ckpt, ts, seeds, best, last_row, say, start_eval,
+                      eval_key, primary)
     return last_row
-  plot_learning_curve(run_dir)
-  best = ckpt.best_scores()
-  if best is not None:
-    last_row.update({f"best_{k}": v for k, v in best.items()})
-  if vineyard and evaluate_at_end:
-    _closing_report(cfg, run_dir, sac, ckpt, ts, seeds, best, last_row, say, start_eval,
-                    eval_key)
-  return last_row
+
+
+def _row(cfg: Config, member: dict, s: int, chunk_index: int, host, m: dict, evals: dict,
+         dt: float, t_compile: float, steps_per_chunk: int) -> dict:
+  """The metrics.jsonl row of member `s` after chunk `chunk_index`: `host` the fetched
+  counters and sums of the TrainState, `m` the chunk's metrics, `dt` its seconds."""
+  get = (lambda x: np.reshape(x, (-1,))[s])
+  eps_done = int(get(host[2]))
+  per_episode = lambda x: float(get(x) / eps_done) if eps_done else None
+  row = {
+      **member, "member": s,
+      "chunk": chunk_index, "env_steps": int(get(host[0])),
+      "episodes": int(get(host[1])),
+      "return_mean": per_episode(host[3]), "success_rate": per_episode(host[4]),
+      "timeout_rate": per_episode(host[5]), "v_mean": float(get(host[6])) / steps_per_chunk,
+      "sps": steps_per_chunk / dt,
+      "ups": cfg.train.iters_per_chunk * cfg.sac.grad_steps_per_iter / dt,
+      "chunk_s": dt, "compile_s": t_compile,
+      "wall": datetime.datetime.now().isoformat(timespec="seconds"),
+      **evals,
+  }
+  row.update({k: float(get(v)) / steps_per_chunk for k, v in host[7].items()})
+  row.update({k: float(get(v)) for k, v in m.items() if k != "finite"})
+  return row
 
 
 def _member_scores(out: dict, member: int) -> dict:
@@ -396,11 +505,14 @@ def _summary_line(row: dict, best: dict | None) -> str:
 
 
 def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seeds: int,
-                    best: dict | None, row: dict, say, start_eval, eval_key) -> None:
+                    best: dict | None, row: dict, say, start_eval, eval_key,
+                    primary: bool = True) -> None:
   """Prints the best policy's evaluation on fresh starts of the training rows beside the
   drive-straight and random baselines from the same starts, evaluates it on the test world
   (the paper's protocol, `eval.runs_after_train` runs per lane-direction, for
-  information) and names the files of the run."""
+  information) and names the files of the run. Every process enters the restore and the
+  baselines (collectives over all devices); process 0 alone runs the test world (on its
+  own device) and prints."""
   actor = ts.learner.policy_params
   if best is not None:
     restored = ckpt.restore(ts, best=True)
@@ -414,9 +526,12 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
       row.update({f"{name}_{k}": v for k, v in scores.items()})
       say(f"  the same starts, {'driving straight' if name == 'straight' else name}: "
           f"{_eval_line(scores)}")
+  actor = _local(actor)
   if seeds > 1:
     actor = jax.tree.map(lambda x: x[0], actor)
   runs = cfg.eval.runs_after_train
+  if not primary:
+    return
   if runs > 0:
     from mjxvine import evaluate as ev
     from mjxvine.worlds import load_test_world
@@ -437,6 +552,9 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
 
 
 def main(argv=None) -> int:
+  """The CLI. Exit codes (`mjxvine.rundir`): 0 done, 2 a bad argument or config or a run
+  directory in use, 3 a non-finite loss, 4 a failed write (disk full, ...), 130 / 143
+  stopped by SIGINT / SIGTERM with a checkpoint written."""
   p = argparse.ArgumentParser(prog="python -m mjxvine.train", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   add_config_args(p, default=None)
@@ -449,14 +567,25 @@ def main(argv=None) -> int:
                  help="also sweep a hyper-parameter at once (vmap; repeatable: a grid); "
                  "sets train.sweep")
   p.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
-  p.add_argument("--distributed", action="store_true",
-                 help="multi-host: call jax.distributed.initialize() (coordinator, process "
-                 "count and id from the cluster environment) and train over every host's "
-                 "devices")
+  dist = p.add_argument_group(
+      "several processes or hosts (jax.distributed)",
+      "Start the same command once per process. Each flag falls back on its environment "
+      "variable, and without either JAX detects SLURM, Open MPI or Kubernetes.")
+  dist.add_argument("--distributed", action="store_true",
+                    help="call jax.distributed.initialize() and train over the devices of "
+                    "every process")
+  dist.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                    help="process 0's address (default $JAX_COORDINATOR_ADDRESS)")
+  dist.add_argument("--num-processes", type=int, default=None, metavar="P",
+                    help="number of processes (default $JAX_NUM_PROCESSES)")
+  dist.add_argument("--process-id", type=int, default=None, metavar="I",
+                    help="this process's id, 0..P-1 (default $JAX_PROCESS_ID)")
   args = p.parse_args(argv)
   enable_compile_cache()
   if args.distributed:
-    jax.distributed.initialize()
+    _initialize_distributed(p, args)
+  elif args.coordinator or args.num_processes is not None or args.process_id is not None:
+    p.error("--coordinator, --num-processes and --process-id go with --distributed")
   if args.resume:
     run_dir = Path(args.resume)
     resolved = run_dir / "config.yaml"
@@ -464,7 +593,7 @@ def main(argv=None) -> int:
       p.error(f"--resume {run_dir}: no such run directory")
     if not resolved.is_file():
       p.error(f"--resume {run_dir}: no config.yaml there (not a run directory)")
-    old = load_config(resolved)
+    old = config_from_args(argparse.Namespace(config=str(resolved), overrides=[]))
     cfg = config_from_args(argparse.Namespace(config=str(resolved), overrides=args.overrides))
     changed = changed_keys(old, cfg)
     free = ("train.total_env_steps", "train.max_minutes", "train.eval_every_chunks",
@@ -479,21 +608,77 @@ def main(argv=None) -> int:
       extra.append("train.sweep=" + "; ".join(args.sweep))
     cfg = config_from_args(args, extra)
     run_dir = Path(args.run_dir or f"runs/{datetime.datetime.now():%Y%m%d-%H%M%S}")
-    if (run_dir / "checkpoints").exists():
-      p.error(f"{run_dir} already holds a run: use --resume {run_dir} or another --run-dir")
+    if run_dir.exists() and not run_dir.is_dir():
+      p.error(f"--run-dir {run_dir}: exists and is not a directory")
+  if lock_holder(run_dir) is not None:
+    print(f"error: {busy_message(run_dir)}", file=sys.stderr)
+    return EXIT_USAGE
+  if not args.resume and (run_dir / "checkpoints").exists():
+    p.error(f"{run_dir} already holds a run: use --resume {run_dir} or another --run-dir")
   if args.resume and (args.seeds or args.sweep):
     p.error("--resume: the seeds and sweep come from the run's config.yaml")
+  primary = jax.process_index() == 0
+  error = functools.partial(print, file=sys.stderr, flush=True) if primary else (
+      lambda *a: None)
   try:
     row = train(cfg, run_dir, resume=bool(args.resume), evaluate_at_end=not args.no_eval)
+  except RunDirBusy as e:
+    error(f"error: {e}")
+    return EXIT_USAGE
   except NonFiniteError as e:
-    print(f"error: {e}", file=sys.stderr)
-    return 3
-  print(json.dumps({k: row.get(k) for k in (
-      "env_steps", "episodes", "return_mean", "success_rate", "sps",
-      "best_eval_success_forward", "best_eval_success_reverse", "best_eval_mae_m",
-      "eval_test_success", "eval_test_runs")}))
+    error(f"error: {e}")
+    return EXIT_NON_FINITE
+  except WriteError as e:
+    error(f"error: {e}")
+    return EXIT_WRITE
+  except OSError as e:
+    if e.errno not in _WRITE_ERRNOS:
+      raise
+    error(f"error: {write_failure(Path(e.filename or run_dir), 'the run files', e)}")
+    return EXIT_WRITE
+  except Interrupted as e:
+    error(f"{e}; resume with: python -m mjxvine.train --resume {run_dir}"
+          + (" --distributed" if args.distributed else ""))
+    return exit_code(e.signum)
+  if primary:
+    print(json.dumps({k: row.get(k) for k in (
+        "env_steps", "episodes", "return_mean", "success_rate", "sps",
+        "best_eval_success_forward", "best_eval_success_reverse", "best_eval_mae_m",
+        "eval_test_success", "eval_test_runs")}))
   return 0
 
 
+# What a failed write of the run files (logs, config.yaml) reports in one line (exit 4).
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO,
+                 errno.EACCES)
+
+
+def _initialize_distributed(p: argparse.ArgumentParser, args) -> None:
+  """`jax.distributed.initialize` from the flags, else $JAX_COORDINATOR_ADDRESS,
+  $JAX_NUM_PROCESSES and $JAX_PROCESS_ID, else JAX's own cluster detection (SLURM, Open
+  MPI, Kubernetes). A missing or bad value is a usage error in one line."""
+  env_int = lambda name: int(os.environ[name]) if os.environ.get(name) else None
+  try:
+    coordinator = args.coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS") or None
+    count = args.num_processes if args.num_processes is not None else env_int(
+        "JAX_NUM_PROCESSES")
+    pid = args.process_id if args.process_id is not None else env_int("JAX_PROCESS_ID")
+  except ValueError as e:
+    p.error(f"--distributed: {e} (JAX_NUM_PROCESSES and JAX_PROCESS_ID are integers)")
+  if count is not None and pid is not None and not 0 <= pid < count:
+    p.error(f"--distributed: process id {pid} is not in 0..{count - 1}")
+  try:
+    jax.distributed.initialize(coordinator_address=coordinator, num_processes=count,
+                               process_id=pid)
+  except (ValueError, RuntimeError) as e:
+    first = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
+    p.error(f"--distributed: {first} (give --coordinator, --num-processes and "
+            "--process-id, or run under SLURM / Open MPI / Kubernetes)")
+
+
 if __name__ == "__main__":
-  sys.exit(main())
+  try:
+    sys.exit(main())
+  except KeyboardInterrupt:  # Ctrl-C before the run starts (its own handler takes over)
+    print("interrupted before the run started", file=sys.stderr)
+    sys.exit(exit_code(signal.SIGINT))

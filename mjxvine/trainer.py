@@ -226,8 +226,9 @@ def compiled(cfg: Config, seeds: int, env):
         continue
       if not learned:
         learned = True
-        print(f"learning starts at env step {steps - n}: compiling the gradient step...",
-              file=sys.stderr, flush=True)
+        if jax.process_index() == 0:  # with jax.distributed, process 0 alone prints
+          print(f"learning starts at env step {steps - n}: compiling the gradient step...",
+                file=sys.stderr, flush=True)
       keys = split_fn(k_update)
       for i in range(g):
         ts, m = learn_fn(ts, keys[i] if seeds == 1 else keys[:, i])

@@ -40,7 +40,7 @@ def test_oracle_drives_every_test_lane(tmp_path):
   overrides = ["world.test_length_m=8", "world.test_seed=3", "camera.width=16",
                "camera.height=12", "eval.max_steps=200"]
   cfg_file = tmp_path / "c.yaml"
-  cfg_file.write_text("")
+  cfg_file.write_text("{}\n")  # the defaults (an empty file is refused)
   argv = ["--policy", "oracle", "--runs", "1", "--world", "3", "--out", str(out),
           "--config", str(cfg_file)]
   for o in overrides:

@@ -79,9 +79,27 @@ def test_resume_continues_and_survives_a_corrupt_checkpoint(first_run, tmp_path,
   err = capsys.readouterr().err
   assert "checkpoint 4 is corrupt" in err and "resumed" in err
   rows = [json.loads(l) for l in (copy / "metrics.jsonl").read_text().splitlines()]
-  # chunks 1-4 of the first run, then 4-6 again from the checkpoint of chunk 3
-  assert [r["env_steps"] for r in rows][4:] == [80, 100, 120]
+  # chunks 1-3 of the first run, then 4-6 from the checkpoint of chunk 3: the row of the
+  # first run's chunk 4 (past that checkpoint) is dropped, every chunk appears once
+  assert [r["env_steps"] for r in rows] == [20, 40, 60, 80, 100, 120]
+  assert [r["chunk"] for r in rows] == [1, 2, 3, 4, 5, 6]
+  assert "dropped 1 row(s) of metrics.jsonl" in err
   assert row["env_steps"] == 120
+  # TensorBoard is told to purge the stopped run's events from env step 61 on
+  starts = [e.step for f in (copy / "tb").glob("events.out.tfevents.*") for e in _events(f)
+            if e.HasField("session_log") and e.session_log.status == e.session_log.START]
+  assert starts == [61]
+
+
+def _events(path):
+  """The TensorBoard `Event`s of an event file (TFRecord: length, crc, data, crc)."""
+  import struct
+  from tensorboardX.proto.event_pb2 import Event
+  data, at = path.read_bytes(), 0
+  while at < len(data):
+    (n,) = struct.unpack("<Q", data[at:at + 8])
+    yield Event.FromString(data[at + 12:at + 12 + n])
+    at += 12 + n + 4
 
 
 def test_resume_with_replay_is_exact(tmp_path):

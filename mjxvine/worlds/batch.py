@@ -25,7 +25,10 @@ def batch_models(models: Sequence[mujoco.MjModel]) -> tuple[mjx.Model, mjx.Model
   """
   if not models:
     raise ValueError("batch_models needs at least one model")
-  puts = _unify_static([mjx.put_model(m) for m in models])
+  # This process's own device: mjx puts on jax.devices()[0] by default, which under
+  # jax.distributed is process 0's device (not addressable from the others).
+  device = jax.local_devices()[0]
+  puts = _unify_static([mjx.put_model(m, device=device) for m in models])
   flat = [jax.tree_util.tree_flatten(p) for p in puts]
   treedef = flat[0][1]
   for i, (_, td) in enumerate(flat[1:], 1):
