@@ -42,11 +42,12 @@ def drive(env, policy, lane: int, direction: str, key, max_steps: int | None = N
   (1-based) in `direction` ("F"/"R"), as the evaluator does (`evaluate.protocol_steps`
   with one env). Yields (qpos (nq,), action (2,) [v m/s, w rad/s], outcome code) after
   each control step, first the start (action 0, outcome running), and stops after the
-  step that ends the episode or after `max_steps` (default `eval.max_steps`)."""
+  step that ends the episode or after `max_steps` (default `eval.max_steps`). The keys
+  (depth noise, a stochastic policy's draws) are the evaluator's for the same `key`."""
   import jax
   import jax.numpy as jp
 
-  from mjxvine.evaluate import protocol_steps
+  from mjxvine.evaluate import CHUNK_STEPS, protocol_steps
   from mjxvine.protocol import RUNNING
   limit = env.cfg.eval.max_steps if max_steps is None else max_steps
   reset, body, _ = protocol_steps(env, policy, 1)
@@ -55,13 +56,15 @@ def drive(env, policy, lane: int, direction: str, key, max_steps: int | None = N
   carry = reset(k_reset, jp.asarray([lane - 1]),
                 jp.asarray([1.0 if direction == "F" else -1.0], jp.float32))
   yield np.asarray(carry[0].pipeline_state.qpos[0]), np.zeros(2, np.float32), RUNNING
-  for _ in range(limit):
+  t = 0
+  while t < limit:  # the evaluator's keys: one per step, CHUNK_STEPS from each chunk key
     k_run, k = jax.random.split(k_run)
-    carry, (_, action, _, outcome, _) = step(carry, k)
-    code = int(outcome[0])
-    yield np.asarray(carry[0].pipeline_state.qpos[0]), np.asarray(action[0]), code
-    if code != RUNNING:
-      return
+    for k_step in jax.random.split(k, CHUNK_STEPS)[:limit - t]:
+      carry, (_, action, _, outcome, _) = step(carry, k_step)
+      code, t = int(outcome[0]), t + 1
+      yield np.asarray(carry[0].pipeline_state.qpos[0]), np.asarray(action[0]), code
+      if code != RUNNING:
+        return
 
 
 def _world(spec: str, cfg):
