@@ -16,7 +16,7 @@ one checkpoints/best follows, member 0).
 The file holds the actor's float32 arrays under their flax paths ("tower/conv0/kernel",
 "dense0/bias", "mean/kernel", ...) and a JSON `__meta__` entry: format version, image
 size, FOVs, max depth, depth scale, action box, state layout, network layout, config
-hash and mjxvine version.
+hash, the whole training config and mjxvine version.
 
 The ONNX graph (`export_onnx`, opset 17; `pip install mjxvine[onnx]`) takes depth (B, H,
 W, 1) float32 metres and state (B, 3) and outputs action (B, 2): the same deterministic
@@ -69,6 +69,9 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
       # the state's yaw: "start", the IMU yaw minus the yaw at the row entrance; "world",
       # the IMU yaw plus yaw_offset_deg (both wrapped to [-pi, pi)); NumpyPolicy.yaw_input
       "yaw_reference": cfg.env.yaw_reference, "yaw_offset_deg": cfg.env.yaw_offset_deg,
+      # the whole training config: `evaluate --policy FILE.npz` then evaluates as the run
+      # does (world, episode limit, env options); the robot needs none of it
+      "config": config_lib.to_dict(cfg),
   }
 
 

@@ -44,10 +44,12 @@ def run_config_file(spec: str | Path, which: str = "best") -> Path | None:
 
 
 def policy_file_settings(path: str | Path) -> dict:
-  """The config sections an exported `.npz` policy fixes, from its metadata and array
-  shapes: {"camera": {...}, "env": {...}, "sac": {...}} (`PolicyFormatError` if it is not
-  a policy file)."""
+  """The config an exported `.npz` policy carries: its training config (metadata
+  "config", in files exported since it was added), with what the policy itself fixes laid
+  over it from its metadata and array shapes: {"camera": {...}, "env": {...}, "sac": {...},
+  ...} (`PolicyFormatError` if it is not a policy file)."""
   arrays, meta = read_policy_file(path)
+  own = meta.get("config") if isinstance(meta.get("config"), dict) else {}
   h, w = (int(v) for v in meta["image_size"])
   low, high = meta["action_low"], meta["action_high"]
   camera = {"height": h, "width": w, "max_depth_m": float(meta["max_depth_m"])}
@@ -59,7 +61,8 @@ def policy_file_settings(path: str | Path) -> dict:
   if "dense0/kernel" in arrays and "tower/conv0/kernel" in arrays:
     sac = {"hidden": int(arrays["dense0/kernel"].shape[-1]),
            "conv_features": int(arrays["tower/conv0/kernel"].shape[-1])}
-  return {"camera": camera, "env": env, "sac": sac}
+  fixed = {"camera": camera, "env": env, "sac": sac}
+  return {**own, **{k: {**(own.get(k) or {}), **v} for k, v in fixed.items()}}
 
 
 def _value(cfg: Config, key: str):
