@@ -3,6 +3,7 @@
   python -m mjxvine.evaluate --policy oracle --out out/eval_oracle
   python -m mjxvine.evaluate --policy random --runs 1 --out out/eval_random
   python -m mjxvine.evaluate --policy models/jackal.npz --sweep noise --out out/noise
+  python -m mjxvine.evaluate --policy runs/RUN --video [--gif] [--video-lanes 1F,4R] --out ev
 
 5 lanes x {forward, reverse} x `--runs` runs, all batched in one rollout, with the
 policy's deterministic action. Runs differ by the depth noise. MAE and RMSE are the
@@ -15,6 +16,11 @@ MAE/RMSE are not comparable to the paper's: each row reports the part of the lan
 run reached the end of the row (EoR), "partial" when some did, "n/a" when none did (then
 MAE/RMSE are null in results.json and "n/a" in results.md; `mae_m_raw`/`rmse_m_raw` keep
 the numbers). --which picks the checkpoint of a run dir: best (default) or last.
+
+A run dir brings its own config.yaml (an .npz its metadata): camera, networks, world and
+env options; --config/--set only override, never what the networks need (`mjxvine.runs`).
+--member K picks a member of a --seeds run (default: the one checkpoints/best follows).
+--video films the first run of each lane-direction to OUT/videos/ (`mjxvine.video`).
 """
 
 from __future__ import annotations
