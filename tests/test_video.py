@@ -67,3 +67,10 @@ def test_without_opengl_it_says_what_to_install(monkeypatch, tmp_path, capsys):
     assert not (tmp_path / "results.json").exists()
   finally:
     video.choose_gl.cache_clear()
+
+
+def test_train_video_needs_the_closing_runs():
+  from mjxvine.config import ConfigError
+  assert load_config(None, ["train.video=true"]).train.video
+  with pytest.raises(ConfigError, match="train.video = true: .*eval.runs_after_train >= 1"):
+    load_config(None, ["train.video=true", "eval.runs_after_train=0"])
