@@ -1,26 +1,44 @@
-"""ROS 2 sketch: drive a robot along a vineyard row with an exported mjxvine policy.
+"""ROS 2 node: drive a robot along a vineyard row with an exported mjxvine policy.
+
+Tested in simulation only (this repository's simulator and the numpy policy); it has not
+yet driven a real robot. Treat the first field runs as tests: a low `max_speed`, a person
+at the e-stop.
 
     python -m mjxvine.export --checkpoint runs/RUN --out policy.npz   # on the training machine
-    python examples/ros2_vineyard_node.py --ros-args -p policy:=policy.npz \
-        -r depth:=/camera/depth/image_rect_raw -r imu:=/imu/data -r cmd_vel:=/cmd_vel
+    python examples/ros2_vineyard_node.py --ros-args --params-file examples/ros2_jackal_params.yaml \
+        -r depth:=/camera/depth/image_rect_raw -r camera_info:=/camera/depth/camera_info \
+        -r imu:=/imu/data -r cmd_vel:=/cmd_vel
 
-Subscribes to `depth` (sensor_msgs/Image, 32FC1 metres or 16UC1 millimetres) and `imu`
-(sensor_msgs/Imu; yaw from its orientation quaternion, rad) and publishes
-geometry_msgs/Twist on `cmd_vel` at 1 / control_dt (10 Hz): linear.x = v (m/s), angular.z =
-w (rad/s), from `NumpyPolicy` on the state [v_prev, w_prev, yaw]. The image is resized
-to the policy's size (nearest neighbour, numpy only); invalid pixels (NaN, inf, 0 mm)
-become the `invalid_depth` parameter (m), then the image is clipped to [0, max_depth]. The
-camera's field of view should match the policy's meta (fovx_deg, fovy_deg): crop the
-image first if it is wider. With no fresh image or IMU reading (older than `timeout_s`)
-the node publishes a stop.
+On the robot it needs numpy and the policy code only: mjxvine installed, or just the one
+file mjxvine/deploy.py copied next to this node as mjxvine_deploy.py (numpy and the
+standard library, Python 3.8+), plus rclpy, sensor_msgs, geometry_msgs and std_srvs.
+
+Subscribes to `depth` (sensor_msgs/Image, 32FC1 metres or 16UC1 millimetres),
+`camera_info` (sensor_msgs/CameraInfo of that image) and `imu` (sensor_msgs/Imu; yaw from
+its orientation quaternion, rad) and publishes geometry_msgs/Twist on `cmd_vel` at
+1 / control_dt (10 Hz): linear.x = v (m/s), angular.z = w (rad/s), from `NumpyPolicy` on
+the state [v_prev, w_prev, yaw].
+
+Parameters:
+  policy (str): the .npz policy file.
+  fov_crop (bool, true): crop the image to the policy's field of view (`fovx_deg`,
+    `fovy_deg` in its metadata) around the optical axis, from the camera's CameraInfo
+    (fx, fy, cx, cy), before resizing it to the policy's size (nearest neighbour). A
+    camera narrower than the policy cannot be widened: the node warns. With fov_crop
+    the node stops until a CameraInfo has arrived.
+  max_speed (float, -1): a cap on v in m/s below the policy's own maximum (negative:
+    none). The state's v_prev is the speed actually commanded.
+  invalid_depth (float, -1): what pixels without a reading (NaN, inf, 0 mm) become, m;
+    negative: the policy's maximum range `max_depth_m`, what the simulator shows for a
+    ray that hits nothing (0 would read as an obstacle at the lens).
+  timeout_s (float, 0.5): with no fresh image or IMU reading for this long, publish a stop.
 
 The yaw input follows the policy's `yaw_reference` (metadata): "start" (this project's
 default) is the IMU yaw relative to the heading at the row entrance. The node takes that
 reference from the first IMU reading, so start it with the robot at the row entrance
 facing down the row; before the next row, call the `zero_heading` service
 (std_srvs/Trigger) with the robot placed the same way. "world" (the paper's input) is the
-IMU yaw plus the policy's `yaw_offset_deg`. Needs rclpy, sensor_msgs, geometry_msgs and
-std_srvs (not mjxvine dependencies); numpy and mjxvine.deploy only otherwise.
+IMU yaw plus the policy's `yaw_offset_deg`.
 """
 
 from __future__ import annotations
@@ -33,15 +51,18 @@ import rclpy
 from geometry_msgs.msg import Twist
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import Image, Imu
+from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_srvs.srv import Trigger
 
-from mjxvine.deploy import NumpyPolicy
+try:
+  from mjxvine.deploy import NumpyPolicy, fov_window
+except ImportError:  # no mjxvine on the robot: mjxvine/deploy.py copied as mjxvine_deploy.py
+  from mjxvine_deploy import NumpyPolicy, fov_window
 
 
-def image_to_metres(msg: Image, invalid: float) -> np.ndarray:
-  """A 32FC1 (m) or 16UC1 (mm) Image -> (height, width) float32 metres; NaN/inf/0 mm ->
-  `invalid`."""
+def image_to_metres(msg: Image) -> np.ndarray:
+  """A 32FC1 (m) or 16UC1 (mm) Image -> (height, width) float32 metres; pixels without a
+  reading (NaN, inf, 0) -> NaN, which the policy's preprocessing maps to `invalid_depth`."""
   if msg.encoding == "32FC1":
     dtype, scale = np.dtype(np.float32), 1.0
   elif msg.encoding in ("16UC1", "mono16"):
@@ -52,10 +73,7 @@ def image_to_metres(msg: Image, invalid: float) -> np.ndarray:
   rows = np.frombuffer(bytes(msg.data), dtype, count=msg.height * msg.step // dtype.itemsize)
   raw = rows.reshape(msg.height, -1)[:, : msg.width]
   img = raw.astype(np.float32) * np.float32(scale)
-  bad = ~np.isfinite(img)
-  if raw.dtype.kind == "u":
-    bad |= raw == 0  # 0 mm: no return
-  img[bad] = invalid
+  img[~np.isfinite(img) | (img <= 0.0)] = np.nan  # no return
   return img
 
 
@@ -78,30 +96,66 @@ class VineyardNode(Node):
     super().__init__("mjxvine_vineyard")
     path = self.declare_parameter("policy", "policy.npz").value
     self.timeout = float(self.declare_parameter("timeout_s", 0.5).value)
-    # One BLAS thread (needs threadpoolctl; else set OPENBLAS_NUM_THREADS=1).
-    self.policy = NumpyPolicy.load(path, preprocess=True, blas_threads=1)
-    self.invalid = float(self.declare_parameter("invalid_depth", 0.0).value)
+    invalid = float(self.declare_parameter("invalid_depth", -1.0).value)
+    self.fov_crop = bool(self.declare_parameter("fov_crop", True).value)
+    self.max_speed = float(self.declare_parameter("max_speed", -1.0).value)
+    # One BLAS thread (needs threadpoolctl; else set OPENBLAS_NUM_THREADS=1). Invalid
+    # pixels: the maximum range unless invalid_depth >= 0.
+    self.policy = NumpyPolicy.load(path, preprocess=True, blas_threads=1,
+                                   invalid_depth=invalid if invalid >= 0 else None)
+    self.window = None  # (rows, cols) of the image inside the policy's field of view
     self.depth = self.depth_time = self.yaw = self.yaw_time = None
     self.imu_yaw = self.yaw_ref = None  # raw IMU yaw and the reference it is measured from
     self.v_prev = self.w_prev = 0.0
     self.create_service(Trigger, "zero_heading", self.on_zero_heading)
     self.create_subscription(Image, "depth", self.on_depth, qos_profile_sensor_data)
+    if self.fov_crop:
+      self.create_subscription(CameraInfo, "camera_info", self.on_camera_info,
+                               qos_profile_sensor_data)
     self.create_subscription(Imu, "imu", self.on_imu, qos_profile_sensor_data)
     self.cmd = self.create_publisher(Twist, "cmd_vel", 10)
     dt = float(self.policy.meta.get("control_dt", 0.1))
     self.create_timer(dt, self.on_timer)
-    self.get_logger().info(f"{path}: {self.policy.height}x{self.policy.width} depth, "
-                           f"fov {self.policy.meta.get('fovx_deg')} deg, {1 / dt:.0f} Hz")
+    self.get_logger().info(
+        f"{path}: {self.policy.height}x{self.policy.width} depth, fov "
+        f"{self.policy.meta.get('fovx_deg')} x {self.policy.meta.get('fovy_deg')} deg"
+        f"{' (cropped from camera_info)' if self.fov_crop else ''}, invalid depth -> "
+        f"{self.policy.invalid_depth:g} m, {1 / dt:.0f} Hz"
+        + (f", v <= {self.max_speed:g} m/s" if self.max_speed >= 0 else ""))
 
   def now(self) -> float:
     return self.get_clock().now().nanoseconds * 1e-9
 
+  def on_camera_info(self, msg: CameraInfo) -> None:
+    """The rows and columns of the image inside the policy's field of view."""
+    fx, cx, fy, cy = msg.k[0], msg.k[2], msg.k[4], msg.k[5]
+    if fx <= 0 or fy <= 0:
+      self.get_logger().error("camera_info has no focal length (K)", throttle_duration_sec=5.0)
+      return
+    meta = self.policy.meta
+    window = (fov_window(msg.height, fy, cy, float(meta.get("fovy_deg", 180.0))),
+              fov_window(msg.width, fx, cx, float(meta.get("fovx_deg", 180.0))))
+    if window != self.window:
+      self.window = window
+      cam_fovx = math.degrees(2 * math.atan(msg.width / (2 * fx)))
+      if cam_fovx < float(meta.get("fovx_deg", 0.0)) - 1.0:
+        self.get_logger().warn(f"the camera sees {cam_fovx:.1f} deg across, the policy was "
+                               f"trained with {meta.get('fovx_deg')} deg: it cannot be widened")
+      self.get_logger().info(f"field-of-view crop: rows {window[0]}, columns {window[1]} of "
+                             f"{msg.height}x{msg.width}")
+
   def on_depth(self, msg: Image) -> None:
     try:
-      img = image_to_metres(msg, self.invalid)
+      img = image_to_metres(msg)
     except ValueError as e:
       self.get_logger().error(str(e), throttle_duration_sec=5.0)
       return
+    if self.fov_crop:
+      if self.window is None:
+        self.get_logger().warn("waiting for camera_info (fov_crop)", throttle_duration_sec=5.0)
+        return
+      (r0, r1), (c0, c1) = self.window
+      img = img[r0:r1, c0:c1]
     self.depth = resize_nearest(img, self.policy.height, self.policy.width)
     self.depth_time = self.now()
 
@@ -127,6 +181,8 @@ class VineyardNode(Node):
     if fresh:
       state = np.array([self.v_prev, self.w_prev, self.yaw], np.float32)
       v, w = self.policy(self.depth, state)
+      if self.max_speed >= 0:
+        v = min(v, self.max_speed)
     else:
       v = w = 0.0
       self.get_logger().warn("no fresh depth image or IMU yaw: stop", throttle_duration_sec=2.0)

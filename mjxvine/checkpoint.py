@@ -6,7 +6,7 @@
 
 `Checkpoints` writes them and restores a whole TrainState (the trainer's resume);
 `checkpoint_item` picks the step a run's "best" or "last" policy is read from and
-`restore_actor_params` reads its actor params without a template (`mjxvine.export`,
+`restore_actor_params` reads one member's actor params without a template (`mjxvine.export`,
 `mjxvine.policies`, `mjxvine.evaluate`).
 
 jax and orbax are imported where they are used, so that the export CLI's .npz -> ONNX
@@ -213,14 +213,52 @@ def _find_key(tree: Any, key: str) -> Any:
   return None
 
 
-def restore_actor_params(path: str | Path, which: str = "best") -> tuple[Any, Path]:
+def best_member(run_dir: Path | None) -> int:
+  """The member of a `--seeds` / sweep run that checkpoints/best follows: the trainer keeps
+  the best evaluation of member 0 (RUN_DIR/best.json may name another as "member")."""
+  if run_dir is not None and (run_dir / "best.json").is_file():
+    try:
+      return int(json.loads((run_dir / "best.json").read_text()).get("member", 0))
+    except (ValueError, TypeError, AttributeError):
+      pass
+  return 0
+
+
+def num_members(actor: Any) -> int | None:
+  """How many members a restored actor holds: the leading axis of its stacked params (a
+  `--seeds` / sweep run), None for a single actor (its mean head's kernel is 2-D)."""
+  head = _find_key(actor, "mean")
+  if not isinstance(head, dict) or "kernel" not in head:
+    return None
+  return head["kernel"].shape[0] if np.ndim(head["kernel"]) == 3 else None
+
+
+def select_member(actor: Any, member: int | None, run_dir: Path | None = None) -> Any:
+  """One member's params of a restored actor: `member` (None: `best_member(run_dir)`) of
+  stacked params; a single actor as it is (member None or 0). ValueError naming the
+  range when `member` is not a member of the run."""
+  import jax
+  count = num_members(actor)
+  if count is None:
+    if member not in (None, 0):
+      raise ValueError(f"member {member}: this run trained one member (0)")
+    return actor
+  member = best_member(run_dir) if member is None else member
+  if not 0 <= member < count:
+    raise ValueError(f"member {member}: this run trained {count} members (0 to {count - 1})")
+  return jax.tree.map(lambda x: np.asarray(x)[member], actor)
+
+
+def restore_actor_params(path: str | Path, which: str = "best",
+                         member: int | None = None) -> tuple[Any, Path]:
   """(actor params, item dir) of the checkpoint that `checkpoint_item(path, which)` picks.
 
-  The params are the actor's flax "params" dict of numpy arrays, as saved (a leading
-  seeds axis when the run trained several members). No TrainState template is needed:
-  the tree comes from the checkpoint's own metadata. Raises FileNotFoundError (see
-  `checkpoint_item`), ValueError (a damaged checkpoint) and KeyError (no `actor_params`
-  entry).
+  The params are the actor's flax "params" dict of numpy arrays of one member: of a run
+  that trained several (`--seeds`, sweeps; saved with a leading members axis), `member`,
+  by default the one checkpoints/best follows (`best_member`). No TrainState template is
+  needed: the tree comes from the checkpoint's own metadata. Raises FileNotFoundError (see
+  `checkpoint_item`), ValueError (a damaged checkpoint, a member the run does not have)
+  and KeyError (no `actor_params` entry).
   """
   import jax
   import orbax.checkpoint as ocp
@@ -243,4 +281,7 @@ def restore_actor_params(path: str | Path, which: str = "best") -> tuple[Any, Pa
     actor = _find_key(tree, "actor_params")
   if actor is None:
     raise KeyError(f"{item}: the checkpoint has no 'actor_params' entry")
-  return actor, item
+  try:
+    return select_member(actor, member, run_dir_of(item)), item
+  except ValueError as e:
+    raise ValueError(f"{run_dir_of(item) or item}: {e}") from None

@@ -8,6 +8,7 @@ key. Defaults are the paper's setting (docs/design.md).
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import hashlib
 import json
@@ -246,6 +247,9 @@ class TrainConfig:
                               "many chunks and at the end; keeps checkpoints/best (0: only at "
                               "the end)")
   eval_starts: int = _f(32, 1, 4096, doc="fresh starts per direction of that evaluation")
+  video: bool = _f(False, doc="the closing report films the best policy on the test world "
+                   "(lanes 1F and 4R): MP4s in RUN/eval/videos/ (needs OpenGL and "
+                   "imageio-ffmpeg, `pip install mjxvine[video]`; eval.runs_after_train >= 1)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -349,6 +353,9 @@ def _check_cross_fields(cfg: Config) -> None:
     raise ConfigError(f"env.physics_dt = {cfg.env.physics_dt}: must divide env.control_dt "
                       f"= {cfg.env.control_dt}")
   parse_sweep(cfg.train.sweep)
+  if cfg.train.video and cfg.eval.runs_after_train < 1:
+    raise ConfigError("train.video = true: films the closing test-world runs, which need "
+                      "eval.runs_after_train >= 1 (got 0)")
   if cfg.sac.log_std_min >= cfg.sac.log_std_max:
     raise ConfigError(f"sac.log_std_min = {cfg.sac.log_std_min}: must be < sac.log_std_max")
   if (cfg.sac.mirror_augment and cfg.env.yaw_reference == "world"
@@ -392,24 +399,40 @@ def _set_nested(data: dict, dotted: str, value: str) -> None:
   node[parts[-1]] = value
 
 
-def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Config:
-  """Loads a config: defaults <- YAML file at `path` <- `overrides` ("section.key=value")."""
-  data: dict = {}
-  if path is not None:
-    path = Path(path)
-    if not path.is_file():
-      raise ConfigError(f"config file not found: {path}")
-    try:
-      data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-      raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None
-    if data is None:
-      # An empty file is more likely a mistake than a wish for the defaults (a 112x112
-      # run with a multi-GB replay): "{}" says the latter.
-      raise ConfigError(f"{path}: empty (write {{}} to train the defaults)")
-    if not isinstance(data, dict):
-      raise ConfigError(f"{path}: expected a mapping of sections (world:, env:, sac:, ...), "
-                        f"got a {type(data).__name__}")
+def read_yaml(path: str | Path) -> dict:
+  """The mapping of a YAML config file; ConfigError (naming the file) if missing or invalid."""
+  path = Path(path)
+  if not path.is_file():
+    raise ConfigError(f"config file not found: {path}")
+  try:
+    data = yaml.safe_load(path.read_text())
+  except yaml.YAMLError as e:
+    raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None
+  if data is None:
+    # An empty file is more likely a mistake than a wish for the defaults (a 112x112
+    # run with a multi-GB replay): "{}" says the latter.
+    raise ConfigError(f"{path}: empty (write {{}} to train the defaults)")
+  if not isinstance(data, dict):
+    raise ConfigError(f"{path}: expected a mapping of sections (world:, env:, sac:, ...), "
+                      f"got a {type(data).__name__}")
+  return data
+
+
+def _merged(base: dict, top: dict) -> dict:
+  """`base` with `top`'s keys laid over it, section by section (neither is changed)."""
+  out = dict(base)
+  for key, value in top.items():
+    out[key] = (_merged(out[key], value) if isinstance(value, dict) and
+                isinstance(out.get(key), dict) else value)
+  return out
+
+
+def load_config(path: str | Path | None = None, overrides: Sequence[str] = (),
+                base: dict | None = None) -> Config:
+  """Loads a config: defaults <- `base` (a mapping, e.g. a run's own config.yaml) <- YAML
+  file at `path` <- `overrides` ("section.key=value")."""
+  data: dict = _merged(copy.deepcopy(base or {}),
+                       read_yaml(path) if path is not None else {})
   for item in overrides:
     if "=" not in item:
       raise ConfigError(f"--set {item!r}: expected section.key=value")
@@ -492,6 +515,7 @@ __all__ = [
     "Config", "ConfigError", "WorldConfig", "RobotConfig", "CameraConfig", "EnvConfig",
     "SACConfig", "TrainConfig", "EvalConfig", "load_config", "to_dict", "to_yaml",
     "config_hash", "add_config_args", "config_from_args", "replace", "RobotSpec", "ROBOTS",
+    "read_yaml",
     "ROBOT_NAMES", "SWEEPABLE", "parse_sweep", "enable_compile_cache", "action_box",
     "changed_keys",
     "depth_input_scale",

@@ -5,6 +5,10 @@
     v, w = policy(depth, state)      # depth (112, 112[, 1]) metres, state [v_prev, w_prev, yaw]
     v, w = policy(depths, states)    # batched: (B, 112, 112[, 1]) and (B, 3) -> (B,), (B,)
 
+This file is the whole numpy policy: it imports only numpy and the standard library and
+runs on Python 3.8+ (ROS 2 Humble's 3.10 included), so a robot needs no mjxvine install:
+copy it there (e.g. as mjxvine_deploy.py) with the policy file.
+
 The action is the deterministic test-time action of SAC: the tanh-squashed mean mapped
 onto the action box. Files are written by `mjxvine.export.export_actor`. Each conv is
 an im2col (a strided view copied into a preallocated buffer) and a single matmul;
@@ -13,7 +17,10 @@ an im2col (a strided view copied into a preallocated buffer) and a single matmul
 OPENBLAS_NUM_THREADS=1 set before numpy is imported, or `NumpyPolicy.load(path,
 blas_threads=1)` with threadpoolctl installed: extra OpenBLAS threads that must wait for
 a core make each decision several times slower. Inputs are checked (shape, NaN/inf);
-errors are `PolicyInputError`, file problems `PolicyFormatError`.
+errors are `PolicyInputError`, file problems `PolicyFormatError`. A real depth sensor
+reports "no return" as NaN, inf or 0; the simulator renders it as the maximum range, so
+`preprocess=True` maps those pixels to `max_depth_m` (or `invalid_depth`), never to 0 m,
+which the policy would read as an obstacle at the lens.
 Calls are thread-safe (buffers are per thread).
 """
 
@@ -135,16 +142,31 @@ def set_blas_threads(n: int) -> bool:
   return True
 
 
+def fov_window(size: int, focal: float, centre: float, fov_deg: float) -> tuple[int, int]:
+  """The pixel range [start, stop) of one image axis that spans `fov_deg` degrees around
+  the optical axis, for a pinhole camera of `size` pixels with focal length `focal` and
+  principal point `centre` (pixels; from a CameraInfo's K: fx, cx or fy, cy). The whole
+  axis when the camera's field of view is not wider than `fov_deg`."""
+  half = focal * math.tan(math.radians(fov_deg) / 2.0)
+  start = max(0, int(round(centre - half)))
+  stop = min(size, int(round(centre + half)))
+  return (start, stop) if stop - start >= 1 else (0, size)
+
+
 class NumpyPolicy:
   """The actor's deterministic action, in numpy. Build with `NumpyPolicy.load(path)`."""
 
-  def __init__(self, arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = False):
+  def __init__(self, arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = False,
+               invalid_depth: float | None = None):
     """Use `load`. `arrays` maps "tower/conv0/kernel" etc. to float32 arrays."""
     self.meta = meta
     self.preprocess = preprocess
     try:
       self.height, self.width = (int(v) for v in meta["image_size"])
       self.max_depth = float(meta["max_depth_m"])
+      # what preprocessing puts where the sensor has no reading: by default the maximum
+      # range, as the simulator renders a ray that hits nothing
+      self.invalid_depth = self.max_depth if invalid_depth is None else float(invalid_depth)
       self.depth_scale = float(meta.get("depth_scale", 1.0))
       self.low = np.asarray(meta["action_low"], np.float32)
       self.high = np.asarray(meta["action_high"], np.float32)
@@ -198,17 +220,21 @@ class NumpyPolicy:
 
   @classmethod
   def load(cls, path: str | Path, preprocess: bool = False,
-           blas_threads: int | None = None) -> "NumpyPolicy":
+           blas_threads: int | None = None,
+           invalid_depth: float | None = None) -> "NumpyPolicy":
     """Loads an .npz written by `mjxvine.export.export_actor`.
 
-    preprocess: the default for calls; if True, NaN depth pixels become 0 and the image
-    is clipped to [0, max_depth] as the sensor does; if False, NaN/inf is an error.
+    preprocess: the default for calls; if True, invalid depth pixels (NaN, inf and
+    readings <= 0: a real sensor's "no return") become `invalid_depth` and the image is
+    clipped to [0, max_depth]; if False, NaN/inf is an error.
+    invalid_depth: metres; None (default) is the camera's maximum range `max_depth_m`,
+    what the simulator shows for a ray that hits nothing within range.
     blas_threads: if given, `set_blas_threads(blas_threads)` (process-wide; 1 is best on
     a busy CPU); None leaves BLAS as it is.
     """
     arrays, meta = read_policy_file(path)
     try:
-      policy = cls(arrays, meta, preprocess)
+      policy = cls(arrays, meta, preprocess, invalid_depth)
     except PolicyFormatError as e:
       raise PolicyFormatError(f"{path}: {e}") from None
     if blas_threads is not None:
@@ -254,13 +280,23 @@ class NumpyPolicy:
     if not np.isfinite(state).all():
       raise PolicyInputError("state has NaN or inf values")
     if preprocess:
-      depth = np.clip(np.nan_to_num(depth, nan=0.0, posinf=self.max_depth, neginf=0.0),
-                      0.0, self.max_depth)
+      depth = self.clean_depth(depth)
     elif not np.isfinite(depth).all():
       bad = int(np.size(depth) - np.count_nonzero(np.isfinite(depth)))
       raise PolicyInputError(f"depth image has {bad} NaN/inf pixels; pass preprocess=True to "
-                             f"map NaN to 0 and clip to [0, {self.max_depth}] like the sensor")
+                             f"map them to {self.invalid_depth:g} m (no return) and clip to "
+                             f"[0, {self.max_depth:g}] like the simulated sensor")
     return depth, state.reshape(depth.shape[0], -1), batched
+
+  def clean_depth(self, depth) -> np.ndarray:
+    """The preprocessing of `preprocess=True`: a depth image (any shape, metres) with NaN,
+    inf and readings <= 0 (a sensor's "no return") set to `invalid_depth`, then clipped
+    to [0, max_depth] as the simulated sensor is. Returns a new float32 array."""
+    depth = np.array(depth, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+      invalid = ~np.isfinite(depth) | (depth <= 0.0)
+    depth[invalid] = self.invalid_depth
+    return np.clip(depth, 0.0, self.max_depth, out=depth)
 
   def action(self, depth, state, preprocess: bool | None = None) -> np.ndarray:
     """The action array: (A,) for one input, (B, A) for a batch; float32 in the box."""

@@ -3,6 +3,7 @@
   python -m mjxvine.evaluate --policy oracle --out out/eval_oracle
   python -m mjxvine.evaluate --policy random --runs 1 --out out/eval_random
   python -m mjxvine.evaluate --policy models/jackal.npz --sweep noise --out out/noise
+  python -m mjxvine.evaluate --policy runs/RUN --video [--gif] [--video-lanes 1F,4R] --out ev
 
 5 lanes x {forward, reverse} x `--runs` runs, all batched in one rollout, with the
 policy's deterministic action. Runs differ by the depth noise. MAE and RMSE are the
@@ -15,6 +16,11 @@ MAE/RMSE are not comparable to the paper's: each row reports the part of the lan
 run reached the end of the row (EoR), "partial" when some did, "n/a" when none did (then
 MAE/RMSE are null in results.json and "n/a" in results.md; `mae_m_raw`/`rmse_m_raw` keep
 the numbers). --which picks the checkpoint of a run dir: best (default) or last.
+
+A run dir brings its own config.yaml (an .npz its metadata): camera, networks, world and
+env options; --config/--set only override, never what the networks need (`mjxvine.runs`).
+--member K picks a member of a --seeds run (default: the one checkpoints/best follows).
+--video films the first run of each lane-direction to OUT/videos/ (`mjxvine.video`).
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import jax
 import jax.numpy as jp
@@ -32,11 +38,13 @@ import numpy as np
 
 from mjxvine import policies
 from mjxvine.checkpoint import WHICH, checkpoint_item
-from mjxvine.config import (ROBOT_NAMES, Config, add_config_args, config_from_args,
+from mjxvine.config import (ROBOT_NAMES, Config, ConfigError, add_config_args,
                             enable_compile_cache, replace)
 # One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
 from mjxvine.deploy import PolicyError, read_policy_file
 from mjxvine.env import OUTCOMES, SUCCESS, VineyardEnv, pure_pursuit
+from mjxvine.runs import policy_config
+from mjxvine.video import RenderError
 from mjxvine.worlds import Vineyard, make_world
 
 # The paper's table (docs/design.md, Evaluation protocol):
@@ -64,15 +72,17 @@ def random_policy(env: VineyardEnv) -> Policy:
   return policy
 
 
-def load_policy(spec: str, env: VineyardEnv, which: str = "best") -> tuple[Policy, str]:
+def load_policy(spec: str, env: VineyardEnv, which: str = "best",
+                member: int | None = None) -> tuple[Policy, str]:
   """`oracle`, `random`, a run directory / checkpoint, or an exported `.npz` actor.
-  which: the checkpoint of a run directory, "best" or "last" (`checkpoint.checkpoint_item`)."""
+  which: the checkpoint of a run directory, "best" or "last" (`checkpoint.checkpoint_item`);
+  member: of a `--seeds` / sweep run, which one (None: the one checkpoints/best follows)."""
   if spec == "oracle":
     return pure_pursuit(env), "oracle (pure pursuit, privileged pose)"
   if spec == "random":
     return random_policy(env), "random"
   path = check_policy_file(spec, which)
-  return policies.load_actor_policy(path, env, which), str(path)
+  return policies.load_actor_policy(path, env, which, member), str(path)
 
 
 def check_policy_file(spec: str, which: str = "best") -> Path:
@@ -139,31 +149,61 @@ def trajectory_errors(xy: np.ndarray, line: np.ndarray) -> np.ndarray:
   return distance_to_line(xy[inside], line) if inside.any() else np.zeros(0)
 
 
+def protocol_steps(env: VineyardEnv, policy: Policy, b: int, record: Sequence[int] = ()):
+  """The evaluator's stepping of `b` envs, jitted: (reset, step, frames).
+
+  reset(key, lanes (b,) 0-based, directions (b,) +1/-1[, worlds (b,), noise (b,)]) ->
+  carry (State, alive (b,)): the envs at their lanes' starts, in `env`'s worlds `worlds`
+  (default 0) with depth noise factors `noise` (default the env's). step(carry, key) -> (carry, out): every env takes the
+  policy's action and one control step; alive turns False after an env's episode ended;
+  out = (xy (b, 2), action (b, 2), alive (b,) before the step, outcome (b,),
+  frames(state)). frames(state): the qpos (R, nq) and float16 depth (R, H, W) of the
+  envs `record`, () when none. The evaluator and `mjxvine.view` step through these.
+  """
+  rec = jp.asarray(list(record), jp.int32)
+
+  def reset(key, lanes, directions, worlds=None, noise=None):
+    worlds = jp.zeros(b, jp.int32) if worlds is None else worlds
+    noise = jp.full(b, env.noise_factor, jp.float32) if noise is None else noise
+    state = jax.vmap(lambda k, w, l, d, n: env.reset_to(k, w, l, d, noise_factor=n))(
+        jax.random.split(key, b), worlds, lanes, directions, noise)
+    return state, jp.ones(b, bool)
+
+  def frames(state):
+    if not len(record):
+      return ()
+    return (state.pipeline_state.qpos[rec], state.obs["depth"][rec, ..., 0].astype(jp.float16))
+
+  def body(carry, k):
+    state, alive = carry
+    action = jax.vmap(policy)(state, jax.random.split(k, b))
+    state = jax.vmap(env.step)(state, action)
+    out = (state.pipeline_state.qpos[:, :2], action, alive, state.info["outcome"], frames(state))
+    return (state, alive & (state.done == 0)), out
+
+  return jax.jit(reset), body, frames
+
+
 def rollout(env: VineyardEnv, policy: Policy, lanes, directions, key, max_steps: int,
-            worlds=None, noise=None):
+            worlds=None, noise=None, record: Sequence[int] = ()):
   """Runs one episode per (lane, direction) pair from the lane's start, batched.
 
   lanes (0-based), directions (+1 / -1), and optionally worlds (indices into `env`'s
   worlds; default 0) and noise (the depth noise factor of each episode; default the
   env's): sequences of length B.
   Returns numpy arrays over time T and envs B: xy (T, B, 2), action (T, B, 2),
-  alive (T, B) (step taken before the episode ended, inclusive), outcome (B,), steps (B,).
+  alive (T, B) (step taken before the episode ended, inclusive), outcome (B,), steps (B,),
+  and for the envs `record` (R of them, for videos) the frames from the start on:
+  {"qpos": (T + 1, R, nq), "depth": (T + 1, R, H, W) float16 m, the image the policy saw}
+  ({} when none are recorded).
   """
   b = len(lanes)
-  worlds = np.zeros(b, np.int32) if worlds is None else np.asarray(worlds, np.int32)
-  noise = np.full(b, env.noise_factor, np.float32) if noise is None else np.asarray(
-      noise, np.float32)
   k_reset, k_run = jax.random.split(key)
-  reset = jax.jit(jax.vmap(lambda k, w, l, d, n: env.reset_to(k, w, l, d, noise_factor=n)))
-  state = reset(jax.random.split(k_reset, b), jp.asarray(worlds), jp.asarray(lanes),
-                jp.asarray(directions), jp.asarray(noise))
-
-  def body(carry, k):
-    state, alive = carry
-    action = jax.vmap(policy)(state, jax.random.split(k, b))
-    state = jax.vmap(env.step)(state, action)
-    out = (state.pipeline_state.qpos[:, :2], action, alive, state.info["outcome"])
-    return (state, alive & (state.done == 0)), out
+  reset, body, frames = protocol_steps(env, policy, b, record)
+  carry = reset(k_reset, jp.asarray(lanes), jp.asarray(directions, jp.float32),
+                None if worlds is None else jp.asarray(worlds, jp.int32),
+                None if noise is None else jp.asarray(noise, jp.float32))
+  state = carry[0]
 
   scan = jax.jit(lambda c, k: jax.lax.scan(body, c, jax.random.split(k, CHUNK_STEPS)))
   step = jax.jit(body)
@@ -179,11 +219,11 @@ def rollout(env: VineyardEnv, policy: Policy, lanes, directions, key, max_steps:
       outs.append(out)
     return carry, jax.tree.map(lambda *x: jp.stack(x), *outs)
 
-  carry = (state, jp.ones(b, bool))
   xy, act, alive, outcome = [], [], [], np.zeros(b, np.int32)
+  recorded = [jax.tree.map(lambda x: np.asarray(x)[None], frames(state))]
   for t0 in range(0, max_steps, CHUNK_STEPS):
     k_run, k = jax.random.split(k_run)
-    carry, (p, a, al, oc) = run(carry, k)
+    carry, (p, a, al, oc, fr) = run(carry, k)
     al, oc = np.asarray(al), np.asarray(oc)
     for t in range(al.shape[0]):
       ended = al[t] & (oc[t] != 0) & (outcome == 0)
@@ -191,11 +231,51 @@ def rollout(env: VineyardEnv, policy: Policy, lanes, directions, key, max_steps:
     xy.append(np.asarray(p))
     act.append(np.asarray(a))
     alive.append(al)
+    recorded.append(jax.tree.map(np.asarray, fr))
     if not np.asarray(carry[1]).any():
       break
   xy, act, alive = (np.concatenate(x)[:max_steps] for x in (xy, act, alive))
   outcome[outcome == 0] = OUTCOMES.index("timeout")
-  return xy, act, alive, outcome, alive.sum(0)
+  tracks = {}
+  if len(record):
+    qpos, depth = (np.concatenate(x)[:max_steps + 1] for x in zip(*recorded))
+    tracks = {"qpos": qpos, "depth": depth}
+  return xy, act, alive, outcome, alive.sum(0), tracks
+
+
+def signed_offsets(points: np.ndarray, line: np.ndarray, direction: str) -> np.ndarray:
+  """Lateral offset (m) of points (n, 2) from the polyline `line` (k, 2), positive on the
+  left of the travel direction ("F": along the line, "R": against it): (n,)."""
+  dist, seg, _ = _closest(points, line)
+  tangent = line[seg + 1] - line[seg]
+  rel = points - line[seg]
+  side = np.sign(tangent[:, 0] * rel[:, 1] - tangent[:, 1] * rel[:, 0])
+  return dist * side * (1.0 if direction == "F" else -1.0)
+
+
+def video_after_train(world: Vineyard) -> list[tuple[int, str]]:
+  """The runs `train.video` films: a straight lane forward and a curved one in reverse
+  (1F and 4R of the test world)."""
+  return [(1, "F"), (min(4, len(world.lanes)), "R")]
+
+
+
+def all_lanes(world: Vineyard) -> list[tuple[int, str]]:
+  """Every lane-direction of `world`: [(1, "F"), (1, "R"), (2, "F"), ...]."""
+  return [(lane, d) for lane in range(1, len(world.lanes) + 1) for d in ("F", "R")]
+
+
+def parse_lanes(text: str, num_lanes: int) -> list[tuple[int, str]]:
+  """"1F,4R" -> [(1, "F"), (4, "R")]; ValueError naming a lane-direction that the world
+  (`num_lanes` lanes, directions F and R) does not have."""
+  out = []
+  for item in filter(None, (x.strip().upper() for x in text.split(","))):
+    lane, direction = item[:-1], item[-1:]
+    if direction not in ("F", "R") or not lane.isdigit() or not 1 <= int(lane) <= num_lanes:
+      raise ValueError(f"--video-lanes {text!r}: {item!r} is not a lane-direction of this "
+                       f"world (1F .. {num_lanes}R)")
+    out.append((int(lane), direction))
+  return out
 
 
 def metrics_status(successes: int, runs: int) -> str:
@@ -226,24 +306,38 @@ def _summary(errs, acts, outcomes, steps, dt, covered_m, covered_frac) -> dict:
   }
 
 
+def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
+             noise_factor: float, lanes=None, directions=("F", "R"), seed: int = 0,
+             policy: Policy | None = None, which: str = "best",
+             member: int | None = None) -> dict:
+  """Runs the protocol and returns the results document (see README). which: the
+  checkpoint of a run directory given as `policy_spec`, "best" or "last"; member: of a
+  run that trained several, which one (None: the one checkpoints/best follows)."""
+  return run_protocol(cfg, policy_spec, world, runs=runs, noise_factor=noise_factor,
+                      lanes=lanes, directions=directions, seed=seed, policy=policy,
+                      which=which, member=member)[0]
+
+
 def rollout_cases(cfg: Config, policy_spec: str, worlds: list[Vineyard], cases, *,
-                  seed: int = 0, policy: Policy | None = None, which: str = "best"):
+                  seed: int = 0, policy: Policy | None = None, which: str = "best",
+                  member: int | None = None, record: Sequence[int] = ()):
   """One batched rollout of every case: (world index, lane (1-based), direction "F"/"R",
   noise factor) tuples over `worlds`. Returns (raw, policy name) with raw = dict of
-  the `rollout` arrays (xy, act, alive, outcome, steps) and wall_s."""
+  the `rollout` arrays (xy, act, alive, outcome, steps, frames of the cases `record`) and
+  wall_s."""
   # the protocol's episode limit, whatever the training episodes were
   cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
   env = VineyardEnv(cfg, list(worlds))
   name = policy_spec
   if policy is None:
-    policy, name = load_policy(policy_spec, env, which)
+    policy, name = load_policy(policy_spec, env, which, member)
   t0 = time.time()
-  xy, act, alive, outcome, steps = rollout(
+  xy, act, alive, outcome, steps, frames = rollout(
       env, policy, [l - 1 for _, l, _, _ in cases], [1.0 if d == "F" else -1.0
                                                      for _, _, d, _ in cases],
       jax.random.PRNGKey(seed), cfg.env.max_steps, worlds=[w for w, _, _, _ in cases],
-      noise=[n for _, _, _, n in cases])
-  raw = dict(xy=xy, act=act, alive=alive, outcome=outcome, steps=steps,
+      noise=[n for _, _, _, n in cases], record=record)
+  raw = dict(xy=xy, act=act, alive=alive, outcome=outcome, steps=steps, frames=frames,
              wall_s=time.time() - t0)
   return raw, name
 
@@ -303,21 +397,60 @@ def mean_of_rows(rows: list[dict]) -> dict:
   return out
 
 
-def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
-             noise_factor: float, lanes=None, directions=("F", "R"), seed: int = 0,
-             policy: Policy | None = None, which: str = "best") -> dict:
-  """Runs the protocol and returns the results document (see README). which: the
-  checkpoint of a run directory given as `policy_spec`, "best" or "last"."""
+def run_protocol(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
+                 noise_factor: float, lanes=None, directions=("F", "R"), seed: int = 0,
+                 policy: Policy | None = None, which: str = "best", member: int | None = None,
+                 video: Sequence[tuple[int, str]] = ()) -> tuple[dict, list]:
+  """`evaluate`, and the `video.Track` of the first run of each lane-direction in `video`
+  ((lane, "F"|"R") pairs): (results document, tracks)."""
   if runs < 1:
     raise ValueError(f"runs={runs}: need at least 1 run per lane and direction")
   if noise_factor < 0:
     raise ValueError(f"noise factor {noise_factor}: must be >= 0")
   lanes = list(range(1, len(world.lanes) + 1)) if lanes is None else list(lanes)
   cases = [(0, l, d, noise_factor) for l in lanes for d in directions for _ in range(runs)]
+  record = [cases.index((0, l, d, noise_factor)) for l, d in video
+            if (0, l, d, noise_factor) in cases]
   raw, name = rollout_cases(cfg, policy_spec, [world], cases, seed=seed, policy=policy,
-                            which=which)
+                            which=which, member=member, record=record)
+  frames = raw["frames"]
+  tracks = [_track(cfg, world, cases[i][1:3], frames["qpos"][:, j], frames["depth"][:, j],
+                   raw["act"][:, i], int(raw["steps"][i]), OUTCOMES[int(raw["outcome"][i])])
+            for j, i in enumerate(record)]
   doc = summarize(cfg, world, cases, range(len(cases)), raw)
-  return {"policy": name, "noise": noise_factor, **doc}
+  return {"policy": name, "noise": noise_factor, **doc}, tracks
+
+
+def _track(cfg: Config, world: Vineyard, case: tuple[int, str], qpos, depth, action,
+           steps: int, outcome: str):
+  """The `video.Track` of one recorded run of `steps` steps: frames 0 .. steps."""
+  from mjxvine.video import Track
+  lane, direction = case
+  qpos, depth = qpos[:steps + 1], depth[:steps + 1]
+  action = np.concatenate([np.zeros((1, 2), np.float32), action[:steps]])
+  offset = signed_offsets(qpos[:, :2], world.lanes[lane - 1].centerline, direction)
+  return Track(lane, direction, qpos, depth.astype(np.float32), action, offset, outcome,
+               cfg.env.control_dt, cfg.camera.max_depth_m)
+
+
+def write_videos(tracks, world: Vineyard, cfg: Config, out: Path, *, mp4: bool = True,
+                 gif: bool = False, fps: float | None = None, size=(480, 360),
+                 say=print) -> list[Path]:
+  """Renders each `video.Track` of `world` to out/<lane><dir>.mp4 (and .gif); returns the
+  files written. fps: frames per second of the file (default: twice real time)."""
+  from mjxvine import video
+  from mjxvine.worlds import build_models
+  model = build_models([world], cfg)[0]
+  fps = 2.0 / cfg.env.control_dt if fps is None else fps
+  written = []
+  for track in tracks:
+    t0 = time.time()
+    paths = {k: out / f"{track.label}.{k}" for k, on in (("mp4", mp4), ("gif", gif)) if on}
+    n = video.write_video(video.render_frames(model, track, *size), fps=fps, **paths)
+    written += list(paths.values())
+    say(f"  {' and '.join(str(p) for p in paths.values())}: {n} frames ({track.outcome}) "
+        f"in {time.time() - t0:.0f} s")
+  return written
 
 
 def _fmt(x, nd=3):
@@ -425,12 +558,12 @@ def write_results(doc: dict, world: Vineyard, out: Path) -> None:
   plot_trajectories(doc, world, out / "trajectories.png")
 
 
-def sweep_noise(cfg, policy_spec, world, out: Path, seed=0, which="best") -> dict:
+def sweep_noise(cfg, policy_spec, world, out: Path, seed=0, which="best", member=None) -> dict:
   """The robustness table: noise factors 2..10 on lanes 1F and 4F, 3 runs each."""
   table = {}
   for k in sorted(PAPER_NOISE):
     doc = evaluate(cfg, policy_spec, world, runs=3, noise_factor=float(k), lanes=(1, 4),
-                   directions=("F",), seed=seed, which=which)
+                   directions=("F",), seed=seed, which=which, member=member)
     table[k] = {f"{r['lane']}F": r for r in doc["rows"]}
   lines = ["# Noise robustness (lanes 1F straight, 4F curved; 3 runs each)", "",
            "| noise factor | " + " | ".join(str(k) for k in table) + " |",
@@ -459,13 +592,13 @@ def sweep_noise(cfg, policy_spec, world, out: Path, seed=0, which="best") -> dic
   return table
 
 
-def sweep_robots(cfg, policy_spec, world, out: Path, seed=0, which="best") -> dict:
+def sweep_robots(cfg, policy_spec, world, out: Path, seed=0, which="best", member=None) -> dict:
   """The platform table: Jackal vs Husky on lanes 1F and 4F, 3 runs each."""
   table = {}
   for robot in ROBOT_NAMES:
     doc = evaluate(replace(cfg, robot={"name": robot}), policy_spec, world, runs=3,
                    noise_factor=cfg.eval.noise_factor, lanes=(1, 4), directions=("F",), seed=seed,
-                   which=which)
+                   which=which, member=member)
     for r in doc["rows"]:
       table[(robot, f"{r['lane']}F")] = r
   lines = ["# Robots (3 runs each)", "", "| row | robot | success (paper) | T_avg s (paper) | "
@@ -491,14 +624,30 @@ def sweep_robots(cfg, policy_spec, world, out: Path, seed=0, which="best") -> di
   return table
 
 
+def _size(text: str) -> tuple[int, int]:
+  """"480x360" -> (480, 360): even sizes (what H.264 in yuv420p needs), 32..2048 px."""
+  try:
+    w, h = (int(v) for v in text.lower().split("x"))
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"{text!r}: expected WIDTHxHEIGHT, e.g. 480x360") from None
+  if not (32 <= w <= 2048 and 32 <= h <= 2048 and w % 2 == 0 and h % 2 == 0):
+    raise argparse.ArgumentTypeError(f"{text!r}: width and height must be even, 32..2048")
+  return w, h
+
+
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python -m mjxvine.evaluate", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--policy", required=True, help="oracle, random, a run dir or a .npz")
+  p.add_argument("--policy", required=True, help="oracle, random, a run dir or a .npz; a run "
+                 "dir's config.yaml (an .npz's metadata) gives the camera, networks and env "
+                 "options, --config/--set only override")
   p.add_argument("--which", choices=WHICH, default="best",
                  help="with a run dir as --policy: its best checkpoint (the highest step "
                       "under RUN/checkpoints/best/; the last step when the run has none) or "
                       "the last one (the newest step under RUN/checkpoints/). Default: best")
+  p.add_argument("--member", type=int, default=None,
+                 help="of a run that trained several members (--seeds, sweeps): which one "
+                      "(default: the one checkpoints/best follows, member 0)")
   p.add_argument("--robot", choices=ROBOT_NAMES, default=None)
   p.add_argument("--noise", type=float, default=None,
                  help="depth noise factor, >= 0 (default: the config's eval.noise_factor)")
@@ -511,6 +660,18 @@ def main(argv=None) -> int:
                       "default 5; the noise and robot tests) in one report (mjxvine.suite)")
   p.add_argument("--seed", type=int, default=0)
   p.add_argument("--out", required=True)
+  v = p.add_argument_group("videos (OUT/videos/<lane><dir>.mp4; MuJoCo's renderer, headless "
+                           "with EGL or OSMesa)")
+  v.add_argument("--video", action="store_true",
+                 help="an MP4 of the first run of each lane-direction (or --video-lanes)")
+  v.add_argument("--gif", action="store_true", help="a GIF of each (half the frames, 320 px "
+                 "wide: for a README); with --video as well as the MP4")
+  v.add_argument("--video-lanes", default=None, metavar="1F,4R",
+                 help="the lane-directions to film (default: all of them)")
+  v.add_argument("--video-size", type=_size, default=(480, 360), metavar="WxH",
+                 help="frame size in pixels (default 480x360)")
+  v.add_argument("--video-fps", type=float, default=None,
+                 help="frames per second of the file (default: twice real time, 20)")
   add_config_args(p)
   args = p.parse_args(argv)
   enable_compile_cache()
@@ -518,35 +679,65 @@ def main(argv=None) -> int:
     p.error(f"--runs {args.runs}: need at least 1 run per lane and direction")
   if args.noise is not None and not args.noise >= 0:  # also NaN
     p.error(f"--noise {args.noise}: the noise factor must be >= 0")
+  if args.video_fps is not None and not args.video_fps > 0:
+    p.error(f"--video-fps {args.video_fps}: must be > 0")
+  filming = args.video or args.gif
+  if filming and (args.sweep or args.suite):
+    p.error("--video/--gif film the protocol's runs, not a --sweep or --suite")
+  if args.sweep and args.suite:
+    p.error("--sweep and --suite: choose one (the paper suite includes both sweeps)")
+  if args.video_lanes and not filming:
+    p.error("--video-lanes: give --video or --gif too")
   extra = [f"robot.name={args.robot}"] if args.robot else []
-  cfg = config_from_args(args, extra)
-  noise = cfg.eval.noise_factor if args.noise is None else args.noise
-  runs = cfg.eval.runs if args.runs is None else args.runs
   try:
     if args.policy not in ("oracle", "random"):  # fail before the worlds are built
       check_policy_file(args.policy, args.which)
+    try:
+      cfg, source = policy_config(args.policy, args.config, [*extra, *args.overrides],
+                                  args.which)
+    except ConfigError as e:
+      print(f"config error: {e}", file=sys.stderr)
+      return 2
+    noise = cfg.eval.noise_factor if args.noise is None else args.noise
+    runs = cfg.eval.runs if args.runs is None else args.runs
     world = make_world(args.world or str(cfg.world.test_seed), cfg.world)
+    lanes = all_lanes(world)
+    if args.video_lanes:
+      lanes = parse_lanes(args.video_lanes, len(world.lanes))
+    if filming:  # before the rollout: no GL, no ffmpeg is one line, not a wasted run
+      from mjxvine import video
+      video.choose_gl()
+      if args.video:
+        video.check_mp4()
     out = Path(args.out)
     if args.suite == "paper":
       from mjxvine.suite import paper_suite
       print(f"evaluating {args.policy}: the paper's suite (compiling first)...",
             file=sys.stderr, flush=True)
-      paper_suite(cfg, args.policy, out, runs=args.runs or 5, seed=args.seed, which=args.which)
+      paper_suite(cfg, args.policy, out, runs=args.runs or 5, seed=args.seed, which=args.which,
+                  member=args.member)
       print((out / "report.md").read_text())
     elif args.sweep == "noise":
-      sweep_noise(cfg, args.policy, world, out, args.seed, args.which)
+      sweep_noise(cfg, args.policy, world, out, args.seed, args.which, args.member)
       print((out / "noise.md").read_text())
     elif args.sweep == "robots":
-      sweep_robots(cfg, args.policy, world, out, args.seed, args.which)
+      sweep_robots(cfg, args.policy, world, out, args.seed, args.which, args.member)
       print((out / "robots.md").read_text())
     else:
-      print(f"evaluating {args.policy}: {len(world.lanes) * 2 * runs} runs on the "
-            f"{world.kind} world (compiling first)...", file=sys.stderr, flush=True)
-      doc = evaluate(cfg, args.policy, world, runs=runs, noise_factor=noise, seed=args.seed,
-                     which=args.which)
+      print(f"evaluating {args.policy} (config: {source}): {len(world.lanes) * 2 * runs} runs "
+            f"on the {world.kind} world (compiling first)...", file=sys.stderr, flush=True)
+      doc, tracks = run_protocol(cfg, args.policy, world, runs=runs, noise_factor=noise,
+                                 seed=args.seed, which=args.which, member=args.member,
+                                 video=lanes if filming else ())
       write_results(doc, world, out)
       print(results_markdown(doc))
-  except (PolicyError, FileNotFoundError, ValueError) as e:
+      if tracks:
+        print(f"rendering {len(tracks)} video(s) to {out / 'videos'}/ ...", file=sys.stderr,
+              flush=True)
+        write_videos(tracks, world, cfg, out / "videos", mp4=args.video, gif=args.gif,
+                     fps=args.video_fps, size=args.video_size,
+                     say=lambda m: print(m, file=sys.stderr, flush=True))
+  except (PolicyError, FileNotFoundError, ValueError, RenderError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
   return 0

@@ -8,12 +8,15 @@
 A run's checkpoint is RUN_DIR/checkpoints/best/<step>/ (the best one; --which best, the
 default) or the newest RUN_DIR/checkpoints/<step>/ (--which last); a run without a best
 checkpoint gives its last one (`mjxvine.checkpoint`). The run's config.yaml gives the
-metadata unless --config.
+metadata; --config FILE and --set only override it, and not what the networks were
+trained for (image size, depth range, network sizes, action box: `mjxvine.runs`). Of a
+run that trained several members (--seeds, sweeps), --member K picks one (default: the
+one checkpoints/best follows, member 0).
 
 The file holds the actor's float32 arrays under their flax paths ("tower/conv0/kernel",
 "dense0/bias", "mean/kernel", ...) and a JSON `__meta__` entry: format version, image
 size, FOVs, max depth, depth scale, action box, state layout, network layout, config
-hash and mjxvine version.
+hash, the whole training config and mjxvine version.
 
 The ONNX graph (`export_onnx`, opset 17; `pip install mjxvine[onnx]`) takes depth (B, H,
 W, 1) float32 metres and state (B, 3) and outputs action (B, 2): the same deterministic
@@ -36,6 +39,7 @@ import mjxvine
 from mjxvine import config as config_lib
 from mjxvine.checkpoint import WHICH, restore_actor_params, run_dir_of
 from mjxvine.deploy import FORMAT_VERSION, META_KEY
+from mjxvine.runs import policy_config
 
 STATE_LAYOUT = ("v_prev", "w_prev", "yaw")
 REQUIRED_META = ("image_size", "max_depth_m", "action_low", "action_high")
@@ -65,6 +69,9 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
       # the state's yaw: "start", the IMU yaw minus the yaw at the row entrance; "world",
       # the IMU yaw plus yaw_offset_deg (both wrapped to [-pi, pi)); NumpyPolicy.yaw_input
       "yaw_reference": cfg.env.yaw_reference, "yaw_offset_deg": cfg.env.yaw_offset_deg,
+      # the whole training config: `evaluate --policy FILE.npz` then evaluates as the run
+      # does (world, episode limit, env options); the robot needs none of it
+      "config": config_lib.to_dict(cfg),
   }
 
 
@@ -133,13 +140,15 @@ def _policy_source(source: Any, meta: dict | None) -> tuple[dict[str, np.ndarray
   return arrays, meta
 
 
-def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = False):
+def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = False,
+               invalid_depth: float | None = None):
   """The actor's deterministic action as an `onnx.ModelProto` (opset 17).
 
   Inputs: depth (B, H, W, 1) float32 metres, state (B, S) float32. Output: action (B, A)
   float32 in the action box, as `NumpyPolicy.action`. The depth scale is folded into the
-  first conv kernel. preprocess=True adds NaN -> 0 and a clip to [0, max_depth] in front
-  (the `preprocess` of NumpyPolicy); otherwise inputs must be finite.
+  first conv kernel. preprocess=True puts `NumpyPolicy.clean_depth` in front: NaN, inf and
+  readings <= 0 (no return) -> `invalid_depth` (None: max_depth_m, what the simulator
+  shows), then a clip to [0, max_depth]; otherwise inputs must be finite.
   """
   import onnx
   from onnx import TensorProto, helper, numpy_helper
@@ -161,9 +170,13 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
 
   x = "depth"
   if preprocess:
-    zero, top = const("zero", np.float32(0.0)), const("max_depth", np.float32(meta["max_depth_m"]))
-    x = node("Where", [node("IsNaN", [x], "is_nan"), zero, x], "depth_no_nan")
-    x = node("Clip", [x, zero, top], "depth_clipped")
+    top = float(meta["max_depth_m"])
+    zero, top_c = const("zero", np.float32(0.0)), const("max_depth", np.float32(top))
+    fill = const("invalid_depth", np.float32(top if invalid_depth is None else invalid_depth))
+    bad = node("Or", [node("IsNaN", [x], "is_nan"), node("IsInf", [x], "is_inf")], "not_finite")
+    bad = node("Or", [bad, node("LessOrEqual", [x, zero], "no_return")], "invalid")
+    x = node("Where", [bad, fill, x], "depth_valid")
+    x = node("Clip", [x, zero, top_c], "depth_clipped")
   # (B, H, W, 1) -> (B, 1, H, W): a reshape, since there is one channel.
   x = node("Reshape", [x, const("nchw_shape", np.array([-1, 1, h, w], np.int64))], "nchw")
   ph, pw = (int(v) for v in meta.get("tower_pad", (0, 0)))
@@ -209,17 +222,18 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
 
 
 def export_onnx(source: Any, path: str | Path, meta: dict | None = None,
-                preprocess: bool = False) -> Path:
+                preprocess: bool = False, invalid_depth: float | None = None) -> Path:
   """Writes the ONNX graph of a policy to `path` and returns it.
 
   source: an .npz policy file (from `export_actor`), or its arrays {"tower/conv0/kernel":
   ...} with `meta` (the full metadata, as `actor_arrays` returns), or an (arrays, meta)
   tuple. The metadata is stored as JSON under the model property "mjxvine_meta".
+  preprocess, invalid_depth: see `onnx_model`.
   """
   import onnx
 
   arrays, meta = _policy_source(source, meta)
-  model = onnx_model(arrays, meta, preprocess)
+  model = onnx_model(arrays, meta, preprocess, invalid_depth)
   path = Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
   onnx.save(model, str(path))
@@ -251,17 +265,27 @@ def main(argv=None) -> int:
   parser.add_argument("--out", default=None,
                       help="output file (default RUN_DIR/policy.npz or RUN_DIR/policy.onnx; "
                            "for an .npz input, the same name with .onnx)")
+  parser.add_argument("--member", type=int, default=None,
+                      help="of a run that trained several members (--seeds, sweeps): which "
+                           "one to export (default: the one checkpoints/best follows, "
+                           "member 0)")
   parser.add_argument("--preprocess", action="store_true",
-                      help="onnx: map NaN depth to 0 and clip to [0, max_depth] in the graph")
+                      help="onnx: in the graph, map invalid depth (NaN, inf, <= 0) to the "
+                           "maximum range (or --invalid-depth) and clip to [0, max_depth]")
+  parser.add_argument("--invalid-depth", type=float, default=None, metavar="M",
+                      help="with --preprocess: what invalid pixels become, metres (default: "
+                           "the camera's max_depth_m, as the simulator renders no return)")
   config_lib.add_config_args(parser)
   args = parser.parse_args(argv)
+  if args.invalid_depth is not None and not args.preprocess:
+    parser.error("--invalid-depth: give --preprocess too")
   src = Path(args.checkpoint)
   if src.is_file():
     if args.format != "onnx":
       return _fail(f"{src} is a file; an .npz policy converts only to --format onnx")
     out = Path(args.out) if args.out else src.with_suffix(".onnx")
     try:
-      export_onnx(src, out, preprocess=args.preprocess)
+      export_onnx(src, out, preprocess=args.preprocess, invalid_depth=args.invalid_depth)
     except ValueError as e:  # PolicyFormatError
       return _fail(str(e))
     print(f"wrote {out} (from {src})", file=sys.stderr)
@@ -269,23 +293,25 @@ def main(argv=None) -> int:
   if not src.exists():
     return _fail(f"no such {'policy file' if src.suffix == '.npz' else 'run directory'}: {src}")
   try:
-    actor, item = restore_actor_params(src, args.which)
+    actor, item = restore_actor_params(src, args.which, args.member)
+    # the run's own config.yaml (image size, FOVs, action box); --config/--set override
+    cfg, source = policy_config(src, args.config, args.overrides, args.which)
+  except config_lib.ConfigError as e:
+    print(f"config error: {e}", file=sys.stderr)
+    return 2
   except (FileNotFoundError, KeyError, ValueError) as e:  # no, or a damaged, checkpoint
     return _fail(e.args[0] if e.args else str(e))  # a KeyError's str() is quoted
   run_dir = run_dir_of(item)
-  if args.config is None:  # the run's own config: image size, FOVs, action box
-    args.config = next((str(d / "config.yaml") for d in (run_dir, src)
-                        if d and (d / "config.yaml").is_file()), None)
-  cfg = config_lib.config_from_args(args)
   out = Path(args.out) if args.out else (run_dir or src) / f"policy.{args.format}"
   try:
     if args.format == "onnx":
-      export_onnx(actor_arrays(actor, meta_from_config(cfg)), out, preprocess=args.preprocess)
+      export_onnx(actor_arrays(actor, meta_from_config(cfg)), out, preprocess=args.preprocess,
+                  invalid_depth=args.invalid_depth)
     else:
       export_actor(actor, out, meta_from_config(cfg))
   except ValueError as e:  # no conv tower, or arrays that do not fit the metadata
     return _fail(f"{item}: {e}")
-  print(f"wrote {out} (from {item}, config {args.config or 'defaults'})", file=sys.stderr)
+  print(f"wrote {out} (from {item}, config {source})", file=sys.stderr)
   return 0
 
 

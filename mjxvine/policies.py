@@ -45,11 +45,13 @@ def _unflatten(arrays: dict) -> dict:
   return tree
 
 
-def load_actor_params(path: Path, env, which: str = "best") -> dict:
+def load_actor_params(path: Path, env, which: str = "best", member: int | None = None) -> dict:
   """Actor params from a .npz export or a run directory, checked against `env`'s camera.
 
-  which: the checkpoint of a run directory, "best" or "last" (`checkpoint.checkpoint_item`).
-  Raises `PolicyError` (`PolicyFormatError` for an unreadable .npz).
+  which: the checkpoint of a run directory, "best" or "last" (`checkpoint.checkpoint_item`);
+  member: of a run that trained several, which one (None: the one checkpoints/best
+  follows, `checkpoint.best_member`). Raises `PolicyError` (`PolicyFormatError` for an
+  unreadable .npz).
   """
   path = Path(path)
   if path.suffix == ".npz":
@@ -62,22 +64,26 @@ def load_actor_params(path: Path, env, which: str = "best") -> dict:
                         f"evaluation renders {want[0]}x{want[1]} (set camera.height/width)")
     return _unflatten(arrays)
   try:
-    params, _ = checkpoint.restore_actor_params(path, which)
+    params, _ = checkpoint.restore_actor_params(path, which, member)
   except (FileNotFoundError, KeyError, ValueError) as e:
     raise PolicyError(e.args[0] if e.args else str(e)) from None
   return jax.tree.map(jp.asarray, params)
 
 
-def load_actor_policy(path: Path, env, which: str = "best"):
-  """`actor_policy` of the actor at `path` (see `load_actor_params`), for `env`'s config;
-  PolicyError when the params do not fit that config's networks."""
-  params = load_actor_params(Path(path), env, which)
+def load_actor_policy(path: Path, env, which: str = "best", member: int | None = None):
+  """`actor_policy` of the actor at `path` (see `load_actor_params`), for `env`'s config
+  (build it with `runs.policy_config`); PolicyError when the params do not fit that
+  config's networks."""
+  params = load_actor_params(Path(path), env, which, member)
   nets = nw.make_networks_from_config(env.cfg)
   try:
     nets.actor.apply({"params": params}, {
         "depth": jp.zeros((1, env.cfg.camera.height, env.cfg.camera.width, 1)),
         "state": jp.zeros((1, 3))})
   except Exception as e:  # noqa: BLE001 - any mismatch of shapes or names
-    raise PolicyError(f"{path}: the actor does not fit this config's networks "
-                      f"({type(e).__name__}: {str(e).splitlines()[0][:160]})") from None
+    raise PolicyError(f"{path}: the actor does not fit the networks of camera "
+                      f"{env.cfg.camera.height}x{env.cfg.camera.width}, sac.hidden "
+                      f"{env.cfg.sac.hidden}, sac.conv_features {env.cfg.sac.conv_features} "
+                      f"(a run without config.yaml needs --config; {type(e).__name__}: "
+                      f"{str(e).splitlines()[0][:120]})") from None
   return actor_policy(nets, params)

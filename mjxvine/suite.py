@@ -31,7 +31,8 @@ SMALL_RUNS = 3  # runs per lane of the noise and robot tests, as the paper's
 
 
 def paper_suite(cfg: Config, policy_spec: str, out: Path, *, runs: int = 5,
-                worlds=SUITE_WORLDS, seed: int = 0, which: str = "best") -> dict:
+                worlds=SUITE_WORLDS, seed: int = 0, which: str = "best",
+                member: int | None = None) -> dict:
   """Runs the suite (see the module docstring) and writes its report under `out`.
   Returns the report document (report.json)."""
   out = Path(out)
@@ -50,7 +51,8 @@ def paper_suite(cfg: Config, policy_spec: str, out: Path, *, runs: int = 5,
   for k in NOISE_FACTORS:
     noise[k] = [i for lane, _ in NOISE_LANES for i in add(0, lane, "F", float(k), SMALL_RUNS)]
   jackal = [i for lane, _ in NOISE_LANES for i in add(0, lane, "F", noise0, SMALL_RUNS)]
-  raw, name = ev.rollout_cases(cfg, policy_spec, tests, cases, seed=seed, which=which)
+  raw, name = ev.rollout_cases(cfg, policy_spec, tests, cases, seed=seed, which=which,
+                               member=member)
 
   report = {"policy": name, "seed": seed, "runs": runs, "worlds": {}, "noise": {},
             "robots": {}, "wall_s": raw["wall_s"]}
@@ -65,7 +67,8 @@ def paper_suite(cfg: Config, policy_spec: str, out: Path, *, runs: int = 5,
 
   husky = replace(cfg, robot={"name": "husky"})
   h_cases = [(0, lane, "F", noise0) for lane, _ in NOISE_LANES for _ in range(SMALL_RUNS)]
-  h_raw, _ = ev.rollout_cases(husky, policy_spec, tests[:1], h_cases, seed=seed, which=which)
+  h_raw, _ = ev.rollout_cases(husky, policy_spec, tests[:1], h_cases, seed=seed, which=which,
+                              member=member)
   report["wall_s"] += h_raw["wall_s"]
   h_doc = ev.summarize(husky, tests[0], h_cases, range(len(h_cases)), h_raw)
   for robot, doc in (("jackal", ev.summarize(cfg, tests[0], cases, jackal, raw)),

@@ -538,13 +538,21 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
     world = load_test_world(cfg.world)
     say(f"evaluating the best policy on the test world ({len(world.lanes) * 2 * runs} runs, "
         f"the paper's protocol; for information)...")
-    doc = ev.evaluate(cfg, "checkpoint", world, runs=runs, noise_factor=cfg.eval.noise_factor,
-                      policy=policies.actor_policy(sac.nets, actor))
+    doc, tracks = ev.run_protocol(
+        cfg, "checkpoint", world, runs=runs, noise_factor=cfg.eval.noise_factor,
+        policy=policies.actor_policy(sac.nets, actor),
+        video=ev.video_after_train(world) if cfg.train.video else ())
     doc["policy"] = f"{run_dir} (best checkpoint, seed 0)"
     ev.write_results(doc, world, run_dir / "eval")
     row["eval_test_success"] = doc["overall"]["success"]
     row["eval_test_runs"] = doc["overall"]["runs"]
     say(ev.results_markdown(doc))
+    if tracks:  # train.video
+      say(f"filming the best policy's runs to {run_dir / 'eval' / 'videos'}/ ...")
+      try:
+        ev.write_videos(tracks, world, cfg, run_dir / "eval" / "videos", say=say)
+      except ev.RenderError as e:  # no GL or no ffmpeg here: the run itself is fine
+        say(f"no videos: {e}")
   say(f"wrote {run_dir}/: open learning_curve.png first" +
       (", then eval/trajectories.png and eval/results.md" if runs > 0 else "") +
       "; metrics.jsonl and tb/ (tensorboard --logdir) hold every chunk, checkpoints/ the "

@@ -244,7 +244,8 @@ def compile_key(cfg: Config) -> Config:
   """`cfg` without the fields that do not shape the compiled program."""
   return replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
                              "save_replay": False, "sweep": "", "num_seeds": 1,
-                             "max_minutes": 0.0, "eval_every_chunks": 0, "eval_starts": 1},
+                             "max_minutes": 0.0, "eval_every_chunks": 0, "eval_starts": 1,
+                             "video": False},
                  eval={"runs_after_train": 0})
 
 

@@ -194,3 +194,24 @@ def test_checkpoints_save_restore_and_load_the_policy(tiny_actor, tmp_path, caps
   assert export.main(["--checkpoint", str(tmp_path), "--which", "last"]) == 2
   err = capsys.readouterr().err
   assert "not a readable orbax checkpoint" in err and len(err.splitlines()) == 1
+
+
+def test_a_member_of_a_seeds_run(tmp_path):
+  """A --seeds run saves stacked params: one member is picked, by default the one
+  checkpoints/best follows (best.json may name it), and a member it lacks is one line."""
+  stacked = jax.tree.map(lambda *x: np.stack(x), _actor(10), _actor(11), _actor(12))
+  manager = ocp.CheckpointManager((tmp_path / "checkpoints").resolve(),
+                                  options=ocp.CheckpointManagerOptions(create=True))
+  manager.save(1, args=ocp.args.StandardSave({"learner": {"actor_params": stacked}}))
+  manager.wait_until_finished()
+  manager.close()
+  assert checkpoint.num_members(stacked) == 3 and checkpoint.num_members(_actor(1)) is None
+  assert _step_of(checkpoint.restore_actor_params(tmp_path)[0]) == 10.0  # member 0
+  assert _step_of(checkpoint.restore_actor_params(tmp_path, member=2)[0]) == 12.0
+  (tmp_path / "best.json").write_text('{"chunk": 1, "member": 1}')
+  assert _step_of(checkpoint.restore_actor_params(tmp_path)[0]) == 11.0
+  assert checkpoint.restore_actor_params(tmp_path)[0]["mean"]["kernel"].shape == (4, 2)
+  with pytest.raises(ValueError, match="member 3: this run trained 3 members"):
+    checkpoint.restore_actor_params(tmp_path, member=3)
+  with pytest.raises(ValueError, match="member 1: this run trained one member"):
+    checkpoint.select_member(_actor(1), 1)

@@ -141,14 +141,21 @@ def test_bad_inputs(exported):
   bad[30, 40] = np.inf
   with pytest.raises(deploy.PolicyInputError, match="2 NaN/inf pixels.*preprocess=True"):
     policy(bad, state[0])
-  # preprocess: NaN -> 0, then clip to [0, max_depth], as the sensor does.
-  bad[50, 60] = 7.0
+  # preprocess: no return (NaN, inf, 0, negative) -> the maximum range, as the simulator
+  # renders a ray that hits nothing; then clip to [0, max_depth] as the sensor does.
+  bad[50, 60], bad[70, 80], bad[90, 100], bad[5, 5] = 7.0, 0.0, -1.0, -np.inf
   clean = bad.copy()
-  clean[10, 20], clean[30, 40], clean[50, 60] = 0.0, 5.0, 5.0
+  clean[10, 20] = clean[30, 40] = clean[50, 60] = clean[70, 80] = clean[90, 100] = 5.0
+  clean[5, 5] = 5.0
+  np.testing.assert_array_equal(policy.clean_depth(bad), clean)
   np.testing.assert_allclose(policy(bad, state[0], preprocess=True), policy(clean, state[0]),
                              atol=1e-6)
   np.testing.assert_allclose(deploy.NumpyPolicy.load(exported[0], preprocess=True)(bad, state[0]),
                              policy(clean, state[0]), atol=1e-6)
+  # another value for invalid pixels, if a robot wants one
+  other = deploy.NumpyPolicy.load(exported[0], preprocess=True, invalid_depth=2.5)
+  assert other.clean_depth(bad)[70, 80] == 2.5 and other.clean_depth(bad)[50, 60] == 5.0
+  assert other.clean_depth(bad)[10, 20] == 2.5 and bad[10, 20] != bad[10, 20]  # input kept
 
 
 def _rewrite(src, dst, drop=(), meta_update=None, arrays_update=None):
@@ -251,3 +258,36 @@ def test_yaw_input_follows_the_training_reference(exported):
   arrays, meta = deploy.read_policy_file(path)
   world = deploy.NumpyPolicy(arrays, dict(meta, yaw_reference="world", yaw_offset_deg=90.0))
   assert world.yaw_input(np.pi) == pytest.approx(-np.pi / 2)
+
+
+def test_deploy_is_one_python_3_8_file_that_needs_only_numpy(exported, tmp_path):
+  """mjxvine/deploy.py parses as Python 3.8 and, copied alone onto a robot (as
+  mjxvine_deploy.py), runs the policy with jax, flax, mujoco and mjxvine unimportable."""
+  import ast
+  import shutil
+
+  src = Path(deploy.__file__)
+  tree = ast.parse(src.read_text(), feature_version=(3, 8))
+  imported = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
+              for a in n.names}
+  imported |= {n.module.split(".")[0] for n in ast.walk(tree)
+               if isinstance(n, ast.ImportFrom) and n.module}
+  # numpy, and threadpoolctl where it is installed (`set_blas_threads`, optional)
+  assert imported - set(sys.stdlib_module_names) - {"__future__"} == {"numpy",
+                                                                      "threadpoolctl"}
+  shutil.copy(src, tmp_path / "mjxvine_deploy.py")
+  code = _NO_JAX.replace("from mjxvine.deploy import", "from mjxvine_deploy import").replace(
+      '"orbax")', '"orbax", "mjxvine")')
+  env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONPATH=str(tmp_path))
+  out = subprocess.run([sys.executable, "-c", code, str(exported[0])], capture_output=True,
+                       text=True, env=env, timeout=120, cwd=tmp_path)
+  assert out.returncode == 0, out.stderr
+  assert "from mjxvine_deploy import" in code and '"mjxvine")' in code
+
+
+def test_fov_window():
+  """The columns (rows) of a wider camera inside the policy's field of view."""
+  # 640 px, fx 320: a 90 deg camera; 60 deg is +-320 tan(30 deg) = +-184.75 px around cx
+  assert deploy.fov_window(640, 320.0, 320.0, 60.0) == (135, 505)
+  assert deploy.fov_window(640, 320.0, 300.0, 60.0) == (115, 485)  # off-centre cx
+  assert deploy.fov_window(640, 320.0, 320.0, 120.0) == (0, 640)  # narrower: all of it

@@ -2,6 +2,7 @@
 test vineyard."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -189,3 +190,101 @@ def test_paper_suite_oracle(tmp_path):
   assert all(r["success"] == 3 for r in report["robots"].values())
   md = (tmp_path / "report.md").read_text()
   assert "| 2 | 10/10 | none |" in md and "## Robots" in md and "## Test world 3" in md
+
+
+# ---------------------------------------------------------------------------- a run's own config
+# A run trained with another image size (34x36) and smaller networks than the defaults: its
+# config.yaml and a best checkpoint laid out as `checkpoint.Checkpoints` writes them.
+RUN_SETTINGS = ["camera.height=34", "camera.width=36", "sac.hidden=16", "sac.conv_features=4",
+                "world.test_length_m=8", "world.test_seed=3", "eval.max_steps=12",
+                "eval.runs=1"]
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+  """(root, run dir name): root/run holds config.yaml and checkpoints/best/1 of a 34x36
+  actor with hidden 16 and 4 conv features."""
+  import jax
+  import jax.numpy as jp
+  import orbax.checkpoint as ocp
+
+  from mjxvine import networks as nw
+  from mjxvine.config import to_yaml
+  root = tmp_path_factory.mktemp("runs")
+  run = root / "run"
+  cfg = load_config(None, RUN_SETTINGS)
+  run.mkdir()
+  (run / "config.yaml").write_text(to_yaml(cfg))
+  nets = nw.make_networks_from_config(cfg)
+  obs = {"depth": jp.zeros((1, 34, 36, 1)), "state": jp.zeros((1, 3))}
+  actor, _ = nw.init_params(nets, jax.random.PRNGKey(3), obs)
+  actor = jax.tree.map(np.asarray, actor)
+  actor["mean"]["bias"] = np.array([2.0, 0.0], np.float32)  # drive forward at once
+  manager = ocp.CheckpointManager((run / "checkpoints" / "best").resolve(),
+                                  options=ocp.CheckpointManagerOptions(create=True))
+  manager.save(1, args=ocp.args.StandardSave({"learner": {"policy_params": actor}}))
+  manager.wait_until_finished()
+  manager.close()
+  return root, "run"
+
+
+def test_a_run_is_evaluated_filmed_and_exported_with_its_own_config(small_run, monkeypatch,
+                                                                    capsys):
+  """evaluate, export and evaluate of the export, with relative paths and no --config:
+  the networks, camera and world come from the run's config.yaml; the export's results
+  equal the run's; the video of a run decodes to one frame per step plus the start."""
+  from mjxvine import export, video
+  root, run = small_run
+  monkeypatch.chdir(root)
+  try:
+    video.choose_gl()
+  except video.RenderError as e:
+    pytest.skip(f"no OpenGL for headless rendering here: {e}")
+  film = ["--video", "--gif", "--video-lanes", "2R", "--video-size", "160x120"]
+  assert evaluate_main(["--policy", run, "--out", "ev", *film]) == 0
+  doc = json.loads(Path("ev/results.json").read_text())
+  assert doc["overall"]["runs"] == 10 and Path("ev/trajectories.png").is_file()
+  traj = next(t for t in doc["trajectories"] if (t["lane"], t["direction"]) == (2, "R"))
+  assert 1 <= len(traj["xy"]) <= 12  # the run's own eval.max_steps
+  assert video.count_frames("ev/videos/2R.mp4") == len(traj["xy"]) + 1
+  assert video.count_frames("ev/videos/2R.gif") == (len(traj["xy"]) + 2) // 2
+  assert sorted(p.name for p in Path("ev/videos").iterdir()) == ["2R.gif", "2R.mp4"]
+  assert "(config: run/config.yaml)" in capsys.readouterr().err
+
+  assert export.main(["--checkpoint", run, "--out", "p.npz"]) == 0
+  _, meta = evaluate.read_policy_file("p.npz")
+  assert meta["image_size"] == [34, 36] and meta["max_depth_m"] == 5.0
+  assert evaluate_main(["--policy", "p.npz", "--out", "ev2", *film]) == 0
+  doc2 = json.loads(Path("ev2/results.json").read_text())
+  assert [t["xy"] for t in doc2["trajectories"]] == [t["xy"] for t in doc["trajectories"]]
+  assert [r["outcomes"] for r in doc2["rows"]] == [r["outcomes"] for r in doc["rows"]]
+
+
+def test_an_override_of_what_the_networks_need_is_one_line(small_run, monkeypatch, capsys):
+  from mjxvine import export
+  root, run = small_run
+  monkeypatch.chdir(root)
+  assert evaluate_main(["--policy", run, "--out", "x", "--set", "camera.width=40"]) == 2
+  err = capsys.readouterr().err
+  assert err == ("config error: camera.width = 40: the policy was trained with 36 "
+                 "(run/config.yaml); its networks fit only that (drop the override)\n")
+  assert export.main(["--checkpoint", run, "--out", "x.npz", "--set", "sac.hidden=64"]) == 2
+  assert "sac.hidden = 64: the policy was trained with 16" in capsys.readouterr().err
+  assert not Path("x").exists() and not Path("x.npz").exists()
+  # what does not touch the networks may change: the config says so
+  from mjxvine.runs import policy_config
+  cfg, source = policy_config(run, overrides=["eval.max_steps=30", "robot.name=husky"])
+  assert (cfg.camera.height, cfg.camera.width, cfg.sac.hidden) == (34, 36, 16)
+  assert cfg.eval.max_steps == 30 and cfg.robot.name == "husky"
+  assert source == "run/config.yaml with --set eval.max_steps=30, --set robot.name=husky"
+
+
+def test_signed_offsets_and_lane_lists():
+  line = np.stack([np.linspace(0, 10, 11), np.zeros(11)], -1)
+  pts = np.array([[2.0, 0.3], [5.0, -0.2]])
+  np.testing.assert_allclose(evaluate.signed_offsets(pts, line, "F"), [0.3, -0.2])
+  np.testing.assert_allclose(evaluate.signed_offsets(pts, line, "R"), [-0.3, 0.2])
+  assert evaluate.parse_lanes("1F, 4r", 5) == [(1, "F"), (4, "R")]
+  for bad in ("6F", "1X", "F"):
+    with pytest.raises(ValueError, match="not a lane-direction"):
+      evaluate.parse_lanes(bad, 5)

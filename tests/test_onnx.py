@@ -80,8 +80,19 @@ def test_onnx_from_arrays_with_preprocess(small_policy, tmp_path):
   policy = deploy.NumpyPolicy(arrays, meta, preprocess=True)
   depth, state = _inputs(2, 4)
   depth[0, 5, 6], depth[1, 7, 8], depth[1, 9, 9] = np.nan, 9.0, -np.inf
+  depth[0, 1:4, 1:30], depth[1, 20, 3], depth[1, 21, 4] = 0.0, -2.0, np.inf  # no return
   (got,) = sess.run(["action"], {"depth": depth, "state": state})
   np.testing.assert_allclose(got, policy.action(depth, state), atol=1e-5)
+  clean = policy.clean_depth(depth)
+  assert clean[0, 2, 10] == clean[1, 21, 4] == clean[0, 5, 6] == 5.0  # the maximum range
+  np.testing.assert_allclose(got, policy.action(clean, state), atol=1e-5)
+  # another value for invalid pixels: the graph and the numpy policy agree
+  sess = _session(export.export_onnx((arrays, meta), tmp_path / "pre1.onnx", preprocess=True,
+                                     invalid_depth=1.0))
+  (got1,) = sess.run(["action"], {"depth": depth, "state": state})
+  near = deploy.NumpyPolicy(arrays, meta, preprocess=True, invalid_depth=1.0)
+  np.testing.assert_allclose(got1, near.action(depth, state), atol=1e-5)
+  assert np.abs(got1 - got).max() > 1e-4  # the value matters
   with pytest.raises(ValueError, match="meta"):
     export.export_onnx(arrays, tmp_path / "x.onnx")
   with pytest.raises(deploy.PolicyFormatError, match="lacks arrays"):

@@ -1,0 +1,105 @@
+"""A trained policy describes itself: the config that a run directory or an exported policy
+file was trained with, for every CLI that takes one (`evaluate`, `export`, `view`).
+
+A run directory (or its checkpoints/, a step, an orbax item in it) holds its resolved
+config.yaml; an exported `.npz` holds its camera, action box, yaw input and network sizes
+in its metadata and arrays. `policy_config` builds the config from that source, then lays
+`--config FILE` and `--set` over it: they only override. What the networks were trained
+for (`POLICY_KEYS`: image size, depth range, network sizes, action box) may not change;
+an override that changes it is one `ConfigError` line naming the key and both values.
+
+Only numpy, yaml and the standard library are imported here (jax and orbax only when a
+checkpoint is located), so argument checks stay fast.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+from mjxvine.checkpoint import checkpoint_item, run_dir_of
+from mjxvine.config import Config, ConfigError, load_config, read_yaml
+from mjxvine.deploy import read_policy_file
+
+# The keys a trained actor is tied to: its input size and scaling, its layer sizes and
+# the action box its outputs are mapped onto.
+POLICY_KEYS = ("camera.height", "camera.width", "camera.max_depth_m", "sac.hidden",
+               "sac.conv_features", "env.v_min", "env.v_max", "env.w_max")
+BUILTIN_POLICIES = ("oracle", "random")
+
+
+def run_config_file(spec: str | Path, which: str = "best") -> Path | None:
+  """The config.yaml of the run that a run dir, its checkpoints/ dir, a step or an item
+  dir belongs to; None when there is none (FileNotFoundError when `spec` does not exist)."""
+  path = Path(spec)
+  item = checkpoint_item(path, which)
+  for d in (run_dir_of(item), path):
+    if d is not None and (d / "config.yaml").is_file():
+      found = d / "config.yaml"
+      try:  # as the user named it: relative to the working directory if it was
+        return found.relative_to(Path.cwd()) if not path.is_absolute() else found
+      except ValueError:
+        return found
+  return None
+
+
+def policy_file_settings(path: str | Path) -> dict:
+  """The config an exported `.npz` policy carries: its training config (metadata
+  "config", in files exported since it was added), with what the policy itself fixes laid
+  over it from its metadata and array shapes: {"camera": {...}, "env": {...}, "sac": {...},
+  ...} (`PolicyFormatError` if it is not a policy file)."""
+  arrays, meta = read_policy_file(path)
+  own = meta.get("config") if isinstance(meta.get("config"), dict) else {}
+  h, w = (int(v) for v in meta["image_size"])
+  low, high = meta["action_low"], meta["action_high"]
+  camera = {"height": h, "width": w, "max_depth_m": float(meta["max_depth_m"])}
+  camera.update({k: float(meta[k]) for k in ("fovx_deg", "fovy_deg") if k in meta})
+  env = {"v_min": float(low[0]), "v_max": float(high[0]), "w_max": float(high[1])}
+  env.update({k: meta[k] for k in ("control_dt", "yaw_reference", "yaw_offset_deg")
+              if k in meta})
+  sac = {}
+  if "dense0/kernel" in arrays and "tower/conv0/kernel" in arrays:
+    sac = {"hidden": int(arrays["dense0/kernel"].shape[-1]),
+           "conv_features": int(arrays["tower/conv0/kernel"].shape[-1])}
+  fixed = {"camera": camera, "env": env, "sac": sac}
+  return {**own, **{k: {**(own.get(k) or {}), **v} for k, v in fixed.items()}}
+
+
+def _value(cfg: Config, key: str):
+  section, name = key.split(".")
+  return getattr(getattr(cfg, section), name)
+
+
+def policy_config(spec: str | Path, config_file: str | Path | None = None,
+                  overrides: Sequence[str] = (), which: str = "best") -> tuple[Config, str]:
+  """(config, where it came from) for the policy `spec`: a run dir (or a checkpoint in
+  it), an exported `.npz`, or oracle/random (defaults). `config_file` and `overrides`
+  ("section.key=value") are laid over the policy's own config.
+
+  Raises ConfigError (one line, naming the key) for a bad config or an override of a
+  `POLICY_KEYS` value; FileNotFoundError / `PolicyFormatError` for a missing or
+  unreadable policy.
+  """
+  spec = str(spec)
+  if spec in BUILTIN_POLICIES:
+    return load_config(config_file, overrides), str(config_file or "defaults")
+  path = Path(spec)
+  if path.suffix == ".npz" or path.is_file():
+    base, source = policy_file_settings(path), f"{path}'s metadata"
+  else:
+    found = run_config_file(path, which)
+    if found is None:  # an old or hand-made run: the given config, or the defaults
+      cfg = load_config(config_file, overrides)
+      return cfg, f"{config_file or 'defaults'} ({path} has no config.yaml)"
+    base, source = read_yaml(found), str(found)
+  own = load_config(None, (), base)
+  cfg = load_config(config_file, overrides, base)
+  for key in POLICY_KEYS:
+    trained, now = _value(own, key), _value(cfg, key)
+    if now != trained:
+      raise ConfigError(f"{key} = {now}: the policy was trained with {trained} ({source}); "
+                        f"its networks fit only that (drop the override)")
+  if config_file or overrides:
+    source += " with " + ", ".join(
+        ([str(config_file)] if config_file else []) + [f"--set {o}" for o in overrides])
+  return cfg, source

@@ -1,0 +1,164 @@
+"""Watch a policy drive, live, in MuJoCo's interactive viewer.
+
+    python -m mjxvine.view --policy runs/RUN                       # lane 1F of the test world
+    python -m mjxvine.view --policy policy.npz --world test --lane 4R
+    python -m mjxvine.view --policy oracle --world train --lane 2F --noise 0
+
+The policy drives one env with the evaluator's own stepping (`evaluate.protocol_steps`:
+the same reset, policy call and control step as the protocol, one env), in real time
+(one control step per `env.control_dt` of wall clock, when the machine keeps up); each
+pose is shown in `mujoco.viewer.launch_passive`. When an episode ends the outcome is
+printed and, after a pause, the lane starts again (close the window or Ctrl-C to stop).
+A run directory brings its own config.yaml, as in `mjxvine.evaluate`. The viewer needs a
+display; without one the CLI says so in one line (`evaluate --video` films headless).
+On macOS run it with `mjpython` (MuJoCo's launcher for the passive viewer).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from typing import Iterator
+
+import numpy as np
+
+NO_DISPLAY = ("no display: the interactive viewer needs a desktop session (DISPLAY or "
+              "WAYLAND_DISPLAY); to watch a run headless, film it: python -m mjxvine.evaluate "
+              "--policy P --video --video-lanes 1F --out OUT")
+
+
+def has_display() -> bool:
+  """Whether a window can be opened (Linux: an X or Wayland display; elsewhere assumed)."""
+  if sys.platform != "linux":
+    return True
+  return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def drive(env, policy, lane: int, direction: str, key, max_steps: int | None = None
+          ) -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
+  """Steps one env of `env` (a `VineyardEnv`) with `policy` from the start of `lane`
+  (1-based) in `direction` ("F"/"R"), as the evaluator does (`evaluate.protocol_steps`
+  with one env). Yields (qpos (nq,), action (2,) [v m/s, w rad/s], outcome code) after
+  each control step, first the start (action 0, outcome running), and stops after the
+  step that ends the episode or after `max_steps` (default `eval.max_steps`). The keys
+  (depth noise, a stochastic policy's draws) are the evaluator's for the same `key`."""
+  import jax
+  import jax.numpy as jp
+
+  from mjxvine.evaluate import CHUNK_STEPS, protocol_steps
+  from mjxvine.protocol import RUNNING
+  limit = env.cfg.eval.max_steps if max_steps is None else max_steps
+  reset, body, _ = protocol_steps(env, policy, 1)
+  step = jax.jit(body)
+  k_reset, k_run = jax.random.split(key)
+  carry = reset(k_reset, jp.asarray([lane - 1]),
+                jp.asarray([1.0 if direction == "F" else -1.0], jp.float32))
+  yield np.asarray(carry[0].pipeline_state.qpos[0]), np.zeros(2, np.float32), RUNNING
+  t = 0
+  while t < limit:  # the evaluator's keys: one per step, CHUNK_STEPS from each chunk key
+    k_run, k = jax.random.split(k_run)
+    for k_step in jax.random.split(k, CHUNK_STEPS)[:limit - t]:
+      carry, (_, action, _, outcome, _) = step(carry, k_step)
+      code, t = int(outcome[0]), t + 1
+      yield np.asarray(carry[0].pipeline_state.qpos[0]), np.asarray(action[0]), code
+      if code != RUNNING:
+        return
+
+
+def _world(spec: str, cfg):
+  """--world: "test" (the config's test world), "train" (its first training world), a
+  test-world seed or a world .json file."""
+  from mjxvine.worlds import generate_world, make_world
+  if spec == "test":
+    return make_world(str(cfg.world.test_seed), cfg.world)
+  if spec == "train":
+    return generate_world("train", cfg.world.train_seed, cfg.world)
+  return make_world(spec, cfg.world)
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(prog="python -m mjxvine.view", description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("--policy", required=True, help="oracle, random, a run dir or a .npz")
+  p.add_argument("--which", choices=("best", "last"), default="best",
+                 help="with a run dir: its best (default) or last checkpoint")
+  p.add_argument("--member", type=int, default=None,
+                 help="of a run that trained several members: which one (default: the one "
+                      "checkpoints/best follows, member 0)")
+  p.add_argument("--world", default="test",
+                 help="test (default), train, a test-world seed or a world .json file")
+  p.add_argument("--lane", default="1F", help="lane and direction, e.g. 4R (default 1F)")
+  p.add_argument("--noise", type=float, default=None,
+                 help="depth noise factor, >= 0 (default: the config's eval.noise_factor)")
+  p.add_argument("--seed", type=int, default=0, help="seed of the depth noise")
+  p.add_argument("--once", action="store_true", help="drive the lane once, then exit")
+  from mjxvine.config import add_config_args
+  add_config_args(p)
+  args = p.parse_args(argv)
+  if not has_display():  # before anything is built: one line
+    print(f"error: {NO_DISPLAY}", file=sys.stderr)
+    return 2
+  if args.noise is not None and not args.noise >= 0:
+    p.error(f"--noise {args.noise}: the noise factor must be >= 0")
+
+  import jax
+  import mujoco
+  import mujoco.viewer
+
+  from mjxvine.config import ConfigError, enable_compile_cache, replace
+  from mjxvine.deploy import PolicyError
+  from mjxvine.env import OUTCOMES, VineyardEnv
+  from mjxvine.evaluate import check_policy_file, load_policy, parse_lanes
+  from mjxvine.runs import policy_config
+  enable_compile_cache()
+  try:
+    if args.policy not in ("oracle", "random"):
+      check_policy_file(args.policy, args.which)
+    cfg, source = policy_config(args.policy, args.config, args.overrides, args.which)
+    world = _world(args.world, cfg)
+    ((lane, direction),) = parse_lanes(args.lane, len(world.lanes))
+    noise = cfg.eval.noise_factor if args.noise is None else args.noise
+    cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
+    env = VineyardEnv(cfg, [world], noise_factor=noise)
+    policy, name = load_policy(args.policy, env, args.which, args.member)
+  except ConfigError as e:
+    print(f"config error: {e}", file=sys.stderr)
+    return 2
+  except (PolicyError, FileNotFoundError, ValueError) as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  model = env.mj_model
+  data = mujoco.MjData(model)
+  dt = cfg.env.control_dt
+  print(f"{name} (config: {source}) on lane {lane}{direction} of the {world.kind} world; "
+        f"compiling the step (a minute on a CPU)...", file=sys.stderr, flush=True)
+  key = jax.random.PRNGKey(args.seed)
+  with mujoco.viewer.launch_passive(model, data) as viewer:
+    # a camera that follows the robot (the body of the free joint); the mouse still moves it
+    viewer.cam.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+    viewer.cam.trackbodyid = int(model.jnt_bodyid[0])
+    viewer.cam.distance, viewer.cam.elevation = 4.0, -25.0
+    while viewer.is_running():
+      key, k = jax.random.split(key)
+      t_next, steps, code = time.perf_counter(), 0, 0
+      for qpos, action, code in drive(env, policy, lane, direction, k):
+        if not viewer.is_running():
+          return 0
+        data.qpos[:] = qpos
+        mujoco.mj_forward(model, data)
+        viewer.sync()
+        steps += 1
+        t_next += dt
+        time.sleep(max(0.0, t_next - time.perf_counter()))
+      print(f"lane {lane}{direction}: {OUTCOMES[code]} after {steps - 1} steps "
+            f"({(steps - 1) * dt:.1f} s)", file=sys.stderr, flush=True)
+      if args.once:
+        return 0
+      time.sleep(2.0)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
