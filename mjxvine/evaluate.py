@@ -163,10 +163,14 @@ def protocol_steps(env: VineyardEnv, policy: Policy, b: int, record: Sequence[in
   rec = jp.asarray(list(record), jp.int32)
 
   def reset(key, lanes, directions, worlds=None, noise=None):
-    worlds = jp.zeros(b, jp.int32) if worlds is None else worlds
-    noise = jp.full(b, env.noise_factor, jp.float32) if noise is None else noise
-    state = jax.vmap(lambda k, w, l, d, n: env.reset_to(k, w, l, d, noise_factor=n))(
-        jax.random.split(key, b), worlds, lanes, directions, noise)
+    keys = jax.random.split(key, b)
+    if worlds is None and noise is None:
+      state = jax.vmap(lambda k, l, d: env.reset_to(k, 0, l, d))(keys, lanes, directions)
+    else:
+      worlds = jp.zeros(b, jp.int32) if worlds is None else worlds
+      noise = jp.full(b, env.noise_factor, jp.float32) if noise is None else noise
+      state = jax.vmap(lambda k, w, l, d, n: env.reset_to(k, w, l, d, noise_factor=n))(
+          keys, worlds, lanes, directions, noise)
     return state, jp.ones(b, bool)
 
   def frames(state):
