@@ -12,7 +12,9 @@ Sub-commands
 - physics: env-steps/s of the batched MJX physics alone (0.1 s control steps), and the
   ratio against a Python loop over envs calling `mujoco.mj_step` (one thread).
 - env: env-steps/s of the whole env step at the config's image size.
-- update: SAC gradient steps/s at batch 128 and 512 (config image size and networks).
+- update: SAC gradient steps/s at batch 128 and 512 (config image size and networks), the
+  achieved GFLOP/s (XLA's cost analysis / time), this machine's matmul GFLOP/s (2048x2048
+  float32) and their ratio; `--compare` adds the program under XLA's default options.
 - train: end-to-end `mjxvine.train` env-steps/s and gradient-steps/s while learning
   (default `experiments/fast.yaml`), per env count.
 - brax: brax's own SAC and mjxvine's SAC with one schedule on the vector-observation
@@ -393,23 +395,47 @@ def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
 
 # ------------------------------------------------------------------ learner and trainer
 
+def matmul_gflops(n: int = 2048, min_time: float = 1.0) -> float:
+  """The machine's matrix-multiply rate, GFLOP/s: a jitted n x n float32 matmul (2 n^3
+  flops), median of calls over `min_time` seconds. The yardstick of `bench update`."""
+  a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jp.float32)
+  t = time_call(jax.jit(lambda x: x @ x), a, min_time=min_time)
+  return 2.0 * n ** 3 / t["call_s"] / 1e9
+
+
 def _update_args(p: argparse.ArgumentParser) -> None:
   p.add_argument("--batch-sizes", default="128,512", type=_int_list,
                  help="comma-separated SAC batch sizes")
   p.add_argument("--grad-steps", type=_positive_int, default=None,
                  help="gradient steps per timed call (default sac.grad_steps_per_iter)")
+  p.add_argument("--conv-impl", default="xla", choices=("xla", "dot"),
+                 help="the conv tower's convolutions (mjxvine.networks.CONV_IMPLS)")
+  p.add_argument("--compare", action="store_true",
+                 help="also time the program compiled with XLA's default options (on a "
+                      "CPU: with YNNPACK's convolutions), interleaved")
 
 
 def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   """SAC gradient steps/s (`update_many`: sample from a full replay, twin-critic, actor
-  and target updates) at the config's image size and networks, per batch size."""
+  and target updates) at the config's image size and networks, per batch size.
+
+  Each row also gives the achieved GFLOP/s (XLA's cost-analysis flops per call / median
+  seconds per call), the machine's matmul GFLOP/s (`matmul_gflops`, timed right after)
+  and their ratio: the fraction of this machine's matrix-multiply rate the update runs
+  at, steadier than gradient steps/s on a loaded machine. The program is compiled with
+  `sac.learner_compiler_options()`, as the trainer compiles it ("options" column)."""
   from mjxvine import networks as nw  # pylint: disable=import-outside-toplevel
   from mjxvine import sac as sac_lib  # pylint: disable=import-outside-toplevel
   rows = []
   g = args.grad_steps or cfg.sac.grad_steps_per_iter
+  tuned = sac_lib.learner_compiler_options()
+  variants = [("learner", tuned)] + ([("xla default", None)] if args.compare and tuned else [])
   for b in (int(x) for x in args.batch_sizes.split(",")):
     c = config_lib.replace(cfg, sac={"batch_size": b, "grad_steps_per_iter": g})
-    sac = sac_lib.make_sac(nw.make_networks_from_config(c), c.sac)
+    nets = nw.make_networks_from_config(c)
+    nets = nets._replace(actor=nets.actor.clone(conv_impl=args.conv_impl),
+                         critic=nets.critic.clone(conv_impl=args.conv_impl))
+    sac = sac_lib.make_sac(nets, c.sac)
     h, w = c.camera.height, c.camera.width
     n = 16
     obs = {"depth": jp.ones((n, h, w, 1)), "state": jp.zeros((n, 3))}
@@ -417,12 +443,19 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
                                  jp.dtype(c.sac.replay_depth_dtype))
     buffer = buffer.replace(rows_written=jp.int32(buffer.num_rows))  # full (zeros)
     learner = sac.init(jax.random.PRNGKey(0), obs)
-    t = time_call(jax.jit(sac.update_many), learner, buffer, jax.random.PRNGKey(1))
-    rows.append(dict(batch=b, image=f"{h}x{w}", grad_steps_per_call=g,
-                     grad_steps_per_s=g / t["call_s"],
-                     samples_per_s=g * b / t["call_s"], compile_s=t["compile_s"],
-                     flops_per_grad_step=_per(t["flops"], g),
-                     bytes_per_grad_step=_per(t["bytes_accessed"], g)))
+    for name, options in variants:
+      t = time_call(jax.jit(sac.update_many, compiler_options=options), learner, buffer,
+                    jax.random.PRNGKey(1))
+      gflops = None if t["flops"] is None else t["flops"] / t["call_s"] / 1e9
+      mm = matmul_gflops()
+      rows.append(dict(batch=b, image=f"{h}x{w}", conv=args.conv_impl, options=name,
+                       grad_steps_per_call=g, grad_steps_per_s=g / t["call_s"],
+                       samples_per_s=g * b / t["call_s"], compile_s=t["compile_s"],
+                       flops_per_grad_step=_per(t["flops"], g),
+                       bytes_per_grad_step=_per(t["bytes_accessed"], g),
+                       gflops=gflops, matmul_gflops=mm,
+                       ratio=None if gflops is None else gflops / mm,
+                       load_1m=os.getloadavg()[0] if hasattr(os, "getloadavg") else None))
   return rows
 
 

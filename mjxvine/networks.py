@@ -24,6 +24,7 @@ gradients and optimiser states are float32.
 from __future__ import annotations
 
 import math
+from functools import partial
 from typing import Any, NamedTuple, Sequence
 
 import flax.linen as nn
@@ -79,6 +80,96 @@ def pad_for_tower(x: jax.Array) -> jax.Array:
   return jnp.pad(x, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
 
 
+# ----------------------------------------------------------------------------------------
+# The tower's convolutions as matrix multiplies (`conv_impl="dot"`, opt-in).
+#
+# Each 3x3 VALID conv becomes im2col (9 strided slices, concatenated on the channel axis)
+# and one dot, with a hand-written gradient that is dots and slices too (never XLA's
+# convolution); max pooling becomes a reshape and a max. Exact to float32 rounding. On
+# XLA's CPU backend (jax 0.10) the concatenation costs more than the convolutions it
+# replaces, so the default stays "xla" (lax.conv_general_dilated) on every backend; the
+# CPU's fast path is a compiler option of the learner instead (`mjxvine.sac`,
+# `learner_compiler_options`). Kept for `python -m mjxvine.bench update --conv-impl`.
+
+CONV_IMPLS = ("xla", "dot")
+
+
+def im2col(x: jax.Array, stride: int) -> jax.Array:
+  """3x3 VALID patches: (N, H, W, C) -> (N, Ho, Wo, 9 C), Ho = (H - 3) // stride + 1, the
+  last axis ordered (kernel row, kernel column, channel) like an HWIO kernel reshaped to
+  (9 C, F)."""
+  n, h, w, c = x.shape
+  ho, wo = (h - 3) // stride + 1, (w - 3) // stride + 1
+  cols = [jax.lax.slice(x, (0, i, j, 0),
+                        (n, i + stride * (ho - 1) + 1, j + stride * (wo - 1) + 1, c),
+                        (1, stride, stride, 1))
+          for i in range(3) for j in range(3)]
+  return jnp.concatenate(cols, axis=-1)
+
+
+def _patch_dot(p: jax.Array, kernel: jax.Array) -> jax.Array:
+  """(N, Ho, Wo, 9 C) patches times an HWIO (3, 3, C, F) kernel -> (N, Ho, Wo, F)."""
+  return jax.lax.dot_general(p, kernel.reshape(-1, kernel.shape[-1]),
+                             (((3,), (0,)), ((), ())))
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(2,))
+def conv3x3_dot(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+  """A 3x3 VALID conv, NHWC x HWIO -> NHWC, as im2col and one dot: x (N, H, W, C),
+  kernel (3, 3, C, F) -> (N, Ho, Wo, F). Equal to `lax.conv_general_dilated` to rounding;
+  its gradient is dots and slices as well (never XLA's convolution)."""
+  return _patch_dot(im2col(x, stride), kernel)
+
+
+def _conv3x3_dot_fwd(x, kernel, stride):
+  return conv3x3_dot(x, kernel, stride), (x, kernel)
+
+
+def _conv3x3_dot_bwd(stride, res, dy):
+  x, kernel = res
+  _, h, w, _ = x.shape
+  _, ho, wo, f = dy.shape
+  # d kernel: patches^T dy, one dot contracting over N * Ho * Wo (the patches are rebuilt
+  # from x rather than kept: slices are cheap, a 9x larger residual is not).
+  p = im2col(x, stride).reshape(-1, kernel.shape[0] * kernel.shape[1] * kernel.shape[2])
+  dk = jax.lax.dot_general(p, dy.reshape(-1, f), (((0,), (0,)), ((), ())))
+  # d x: the transposed conv, i.e. a stride-1 conv of dy (dilated by the stride and padded
+  # by 2, plus the rows and columns the strided conv skipped) with the flipped kernel.
+  eh, ew = h - (stride * (ho - 1) + 3), w - (stride * (wo - 1) + 3)
+  zero = jnp.zeros((), dy.dtype)
+  dyp = jax.lax.pad(dy, zero, ((0, 0, 0), (2, 2 + eh, stride - 1), (2, 2 + ew, stride - 1),
+                               (0, 0, 0)))
+  dx = _patch_dot(im2col(dyp, 1), jnp.flip(kernel, (0, 1)).transpose(0, 1, 3, 2))
+  return dx.astype(x.dtype), dk.reshape(kernel.shape).astype(kernel.dtype)
+
+
+conv3x3_dot.defvjp(_conv3x3_dot_fwd, _conv3x3_dot_bwd)
+
+
+def _dot_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None,
+                              rhs_dilation=None, dimension_numbers=None,
+                              feature_group_count=1, precision=None, **_):
+  """`lax.conv_general_dilated`'s signature (as `nn.Conv` calls it) for the tower's convs
+  only: 3x3 kernels, VALID, equal strides, NHWC, no dilation or groups."""
+  del dimension_numbers, precision  # nn.Conv passes NHWC / HWIO, default precision
+  if (rhs.shape[:2] != (3, 3) or padding != "VALID" or len(set(window_strides)) != 1
+      or any(d != 1 for d in (lhs_dilation or ()) + (rhs_dilation or ()))
+      or feature_group_count != 1):
+    raise NotImplementedError("conv3x3_dot: 3x3 VALID convs with equal strides only")
+  return conv3x3_dot(lhs, rhs, int(window_strides[0]))
+
+
+def max_pool_2x2(x: jax.Array) -> jax.Array:
+  """2x2 max pool, stride 2, VALID, of (N, H, W, C) -> (N, H // 2, W // 2, C) as a reshape
+  and a max. Its gradient goes, like XLA's reduce_window / select_and_scatter, to the
+  first maximum of each window in row-major order (also where several are equal)."""
+  n, h, w, c = x.shape
+  x = x[:, :h // 2 * 2, :w // 2 * 2].reshape(n, h // 2, 2, w // 2, 2, c)
+  a, b, d, e = x[:, :, 0, :, 0], x[:, :, 0, :, 1], x[:, :, 1, :, 0], x[:, :, 1, :, 1]
+  m = jax.lax.stop_gradient(jnp.maximum(jnp.maximum(a, b), jnp.maximum(d, e)))
+  return jnp.where(a == m, a, jnp.where(b == m, b, jnp.where(d == m, d, e)))
+
+
 class ConvTower(nn.Module):
   """Depth encoder: 4 conv 3x3 (strides 2, 1, [maxpool 2], 2, 1), ReLU, global avg pool.
 
@@ -90,6 +181,7 @@ class ConvTower(nn.Module):
   features: int = 32
   depth_scale: float = 1.0  # the input is multiplied by this (e.g. 1 / max_depth)
   dtype: Any = jnp.float32  # computation dtype of the convs
+  conv_impl: str = "xla"  # "xla" (lax.conv_general_dilated) or "dot" (im2col and a dot)
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
@@ -99,12 +191,17 @@ class ConvTower(nn.Module):
       raise ValueError(f"depth image {x.shape[-3:-1]} is too small for the conv tower "
                        f"(at least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE})")
     x = pad_for_tower(x)
+    if self.conv_impl not in CONV_IMPLS:
+      raise ValueError(f"conv_impl {self.conv_impl!r}: expected one of {CONV_IMPLS}")
+    dot = self.conv_impl == "dot"
+    conv = {"conv_general_dilated": _dot_conv_general_dilated} if dot else {}
     for i, (stride, pool) in enumerate(CONV_LAYERS):
       x = nn.Conv(self.features, (3, 3), (stride, stride), padding="VALID", dtype=self.dtype,
-                  name=f"conv{i}")(x)
+                  name=f"conv{i}", **conv)(x)
       x = nn.relu(x)
       if pool:
-        x = nn.max_pool(x, (2, 2), strides=(2, 2), padding="VALID")
+        x = (max_pool_2x2(x) if dot else
+             nn.max_pool(x, (2, 2), strides=(2, 2), padding="VALID"))
     x = jnp.mean(x.astype(jnp.float32), axis=(-3, -2))
     return x.reshape(batch_shape + (self.features,))
 
@@ -122,10 +219,10 @@ def tower_output_size(hw: Sequence[int]) -> tuple[int, ...]:
 
 
 def _torso_input(obs: Obs, features: int, depth_scale: float, extra=(),
-                 dtype=jnp.float32) -> jax.Array:
+                 dtype=jnp.float32, conv_impl="xla") -> jax.Array:
   """Concatenates [tower(depth), state, *extra] (dict obs) or [obs, *extra] (vector)."""
   if isinstance(obs, dict):
-    feats = ConvTower(features, depth_scale, dtype, name="tower")(obs["depth"])
+    feats = ConvTower(features, depth_scale, dtype, conv_impl, name="tower")(obs["depth"])
     parts = [feats, obs["state"]]
   else:
     parts = [obs]
@@ -145,10 +242,12 @@ class Actor(nn.Module):
   log_std_min: float = -20.0
   log_std_max: float = 2.0
   dtype: Any = jnp.float32  # computation dtype of the tower and hidden layers
+  conv_impl: str = "xla"  # the tower's convs (`CONV_IMPLS`)
 
   @nn.compact
   def __call__(self, obs: Obs) -> tuple[jax.Array, jax.Array]:
-    x = _torso_input(obs, self.conv_features, self.depth_scale, dtype=self.dtype)
+    x = _torso_input(obs, self.conv_features, self.depth_scale, dtype=self.dtype,
+                     conv_impl=self.conv_impl)
     for i, h in enumerate(self.hidden):
       x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
     x = x.astype(jnp.float32)
@@ -163,11 +262,12 @@ class Critic(nn.Module):
   conv_features: int = 32
   depth_scale: float = 1.0
   dtype: Any = jnp.float32
+  conv_impl: str = "xla"
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
     x = _torso_input(obs, self.conv_features, self.depth_scale, extra=(action,),
-                     dtype=self.dtype)
+                     dtype=self.dtype, conv_impl=self.conv_impl)
     for i, h in enumerate(self.hidden):
       x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
     return nn.Dense(1, name="q")(x.astype(jnp.float32))[..., 0]
@@ -198,11 +298,12 @@ class TwinCritic(nn.Module):
   depth_scale: float = 1.0
   num: int = 2
   dtype: Any = jnp.float32
+  conv_impl: str = "xla"
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
     return jnp.stack([
-        Critic(self.hidden, self.conv_features, self.depth_scale, self.dtype,
+        Critic(self.hidden, self.conv_features, self.depth_scale, self.dtype, self.conv_impl,
                name=f"critic{i}")(obs, action)
         for i in range(self.num)])
 
@@ -212,7 +313,7 @@ def twin_critic_features(critic: "TwinCritic", params: Any, obs: Obs) -> list[ja
   observation has no tower: the features are the observation itself)."""
   if not isinstance(obs, dict):
     return [obs] * critic.num
-  tower = ConvTower(critic.conv_features, critic.depth_scale, critic.dtype)
+  tower = ConvTower(critic.conv_features, critic.depth_scale, critic.dtype, critic.conv_impl)
   return [tower.apply({"params": params[f"critic{i}"]["tower"]}, obs["depth"])
           for i in range(critic.num)]
 

@@ -14,6 +14,7 @@ log pi(a'|s'))`; a time-out (`truncated`) is *not* terminal and bootstraps throu
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Callable, NamedTuple
 
@@ -158,6 +159,29 @@ def polyak(target: Params, online: Params, tau: float) -> Params:
 
 # ----------------------------------------------------------------------------------------
 # The learner.
+
+
+@functools.lru_cache(maxsize=None)
+def learner_compiler_options() -> dict | None:
+  """XLA compiler options for the programs that take gradient steps (`jax.jit(...,
+  compiler_options=...)`), or None.
+
+  On the CPU backend, convolutions are not handed to the YNNPACK library
+  (`xla_cpu_experimental_ynn_fusion_type` empty): its convolution is fast forward but
+  slow for the gradient w.r.t. the kernel (an 18x18-window convolution of the conv tower),
+  which dominates a gradient step; XLA's own convolution takes about half as long there
+  (docs/results/cpu-update-speed.md). The same numbers to float32 rounding. None on
+  accelerators, and where this jaxlib does not know the option.
+  """
+  if jax.default_backend() != "cpu":
+    return None
+  options = {"xla_cpu_experimental_ynn_fusion_type": ""}
+  try:
+    jax.jit(lambda x: x + 1, compiler_options=options)(jnp.zeros(()))
+  except Exception:  # pylint: disable=broad-except
+    return None
+  return options
+
 
 
 class SAC(NamedTuple):

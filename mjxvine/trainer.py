@@ -193,13 +193,16 @@ def compiled(cfg: Config, seeds: int, env):
   init_fn = jax.jit(init_one, out_shardings=shard)
   # Donating the state lets XLA update the replay buffer in place instead of copying it;
   # pinning its sharding keeps envs and replay rows on their devices between calls.
-  jit_state = lambda f, outs: jax.jit(f, donate_argnums=0, out_shardings=(shard, *outs))
+  jit_state = lambda f, outs, **kw: jax.jit(f, donate_argnums=0,
+                                            out_shardings=(shard, *outs), **kw)
+  # the programs with gradient steps: on the CPU without YNNPACK's convolutions
+  learner_options = dict(compiler_options=sac_lib.learner_compiler_options())
   if scan_chunks(cfg):
-    return sac, init_fn, jit_state(batch(chunk), (None,))
+    return sac, init_fn, jit_state(batch(chunk), (None,), **learner_options)
   # The host path: the env step and one gradient step are separate programs, so each is
   # compiled once, and the G gradient steps are G calls (no convolutions in a loop body).
   collect_fn = jit_state(batch(collect), (None, None))
-  learn_fn = jit_state(batch(learn_step), (None,))
+  learn_fn = jit_state(batch(learn_step), (None,), **learner_options)
   g = cfg.sac.grad_steps_per_iter
   split_fn = jax.jit(batch(lambda k: jax.random.split(k, g)))
   summarize_fn = jax.jit(batch(summarize))

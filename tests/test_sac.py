@@ -540,3 +540,33 @@ def test_mirror_half_flips_whole_transitions():
   nets = nw.make_networks(LOW, HIGH, hidden=8)
   with pytest.raises(ValueError, match="mirror_augment"):
     sac.make_sac(nets, SACConfig(mirror_augment=True))
+
+
+def test_cpu_learner_options_give_the_same_losses_and_gradients():
+  """A fixed depth batch: the critic and actor losses and their gradients compiled with
+  `learner_compiler_options()` (the trainer's) are those of the program compiled with
+  XLA's default options, to float32 rounding (the tower's convs as dots:
+  tests/test_networks.py)."""
+  size, b = 33, 4
+  keys = jax.random.split(jax.random.PRNGKey(0), 4)
+  obs = lambda k: {"depth": jax.random.uniform(k, (b, size, size, 1), maxval=5.0),
+                   "state": jax.random.normal(k, (b, 3))}
+  batch = sac.Transition(obs(keys[0]), jax.random.uniform(keys[1], (b, 2)), jnp.ones(b),
+                         jnp.zeros(b), jnp.zeros(b), obs(keys[2]))
+
+  def losses(options):
+    nets = nw.make_networks(LOW, HIGH, hidden=8, conv_features=4, depth_scale=0.2)
+    actor, critic = nw.init_params(nets, keys[3], batch.obs)
+    target = jax.tree.map(lambda x: 0.9 * x, critic)
+
+    def run(actor, critic, target):
+      c = jax.value_and_grad(sac.critic_loss, has_aux=True)(
+          critic, target, actor, ALPHA, batch, keys[0], nets, GAMMA)
+      a = jax.value_and_grad(sac.actor_loss, has_aux=True)(
+          actor, critic, ALPHA, batch, keys[1], nets)
+      return c[0][0], c[1], a[0][0], a[1]
+    return jax.jit(run, compiler_options=options)(actor, critic, target)
+
+  ref, out = losses(None), losses(sac.learner_compiler_options())
+  for x, y in zip(jax.tree.leaves(out), jax.tree.leaves(ref)):
+    np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(y))))
