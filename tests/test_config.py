@@ -108,3 +108,16 @@ def test_new_choices_are_checked():
   with pytest.raises(ConfigError, match="^sac.mirror_augment.*yaw_offset_deg"):
     load_config(None, ["sac.mirror_augment=true", "env.yaw_reference=world",
                        "env.yaw_offset_deg=90"])
+
+
+def test_shipped_configs_match_experiments():
+  """mjxvine/configs/ (package data: what an installed `python -m mjxvine.train` uses) is a
+  copy of experiments/*.yaml: edit experiments/, then `cp experiments/*.yaml mjxvine/configs/`."""
+  from pathlib import Path
+  from mjxvine.config import PACKAGED_CONFIGS, packaged_configs, resolve_config_path
+  repo = sorted(p.name for p in Path("experiments").glob("*.yaml"))
+  assert packaged_configs() == repo
+  for name in repo:
+    assert (PACKAGED_CONFIGS / name).read_text() == (Path("experiments") / name).read_text(), name
+  assert resolve_config_path("cpu") == PACKAGED_CONFIGS / "cpu.yaml"
+  assert resolve_config_path("experiments/cpu.yaml") == Path("experiments/cpu.yaml")
