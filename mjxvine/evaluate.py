@@ -306,7 +306,7 @@ def mean_of_rows(rows: list[dict]) -> dict:
 def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
              noise_factor: float, lanes=None, directions=("F", "R"), seed: int = 0,
              policy: Policy | None = None, which: str = "best") -> dict:
-  """Runs the protocol and returns the results document (see README). which: the
+  """Runs the protocol and returns the results document (docs/evaluation.md). which: the
   checkpoint of a run directory given as `policy_spec`, "best" or "last"."""
   if runs < 1:
     raise ValueError(f"runs={runs}: need at least 1 run per lane and direction")
