@@ -177,7 +177,7 @@ def check_command(env: dict, argv: list[str]) -> None:
       name = module.split(".", 1)[1]
       assert name in CLIS, f"python -m {module}: not a command line of mjxvine"
       ns = parse_cli(CLIS[name], rest)
-      if ns is not None and "XLA_FLAGS" not in env:
+      if ns is not None:
         check_config(CLIS[name].removesuffix(".__main__"), ns)
       return
     if module == "pip":
