@@ -52,7 +52,8 @@ CLIS = {"train": "mjxvine.train", "evaluate": "mjxvine.evaluate", "export": "mjx
 # name are checked.
 EXTERNAL = {"tensorboard", "jupyter", "nvidia-smi", "ros2"}
 # Appended to training commands when the slow test runs them.
-SMOKE_TRAIN = ["--config", "experiments/smoke.yaml", "--set", "train.total_env_steps=64",
+SMOKE_TRAIN = ["--no-eval", "--config", "experiments/smoke.yaml",
+               "--set", "train.total_env_steps=64", "--set", "train.eval_every_chunks=0",
                "--set", "sac.warmup_steps=32", "--set", "env.num_envs=4",
                "--set", "sac.batch_size=16", "--set", "sac.buffer_size=256"]
 
