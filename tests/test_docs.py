@@ -159,7 +159,9 @@ def check_config(module: str, ns: argparse.Namespace) -> None:
   if config is None and module == "mjxvine.train":
     config = DEFAULT_CONFIG
   if config is not None or overrides:
-    if config is not None and not Path(config).is_absolute():
+    if str(config).startswith("runs/"):  # a run's config.yaml, written by an earlier command
+      config = None
+    elif config is not None and not Path(config).is_absolute():
       assert (ROOT / config).is_file() or "/" not in str(config), f"no such file: {config}"
     load_config(config, overrides)
 
