@@ -2,7 +2,7 @@
 
 from mjxvine import _quiet
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 # before mujoco.mjx, absl or orbax are imported: drops their known harmless messages only
 _quiet.install()

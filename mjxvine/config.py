@@ -399,11 +399,39 @@ def _set_nested(data: dict, dotted: str, value: str) -> None:
   node[parts[-1]] = value
 
 
-def read_yaml(path: str | Path) -> dict:
-  """The mapping of a YAML config file; ConfigError (naming the file) if missing or invalid."""
+# The experiment configs shipped inside the package (copies of the repository's
+# experiments/*.yaml, kept identical by tests/test_config.py), so that an installed
+# package trains its documented default and `--config cpu.yaml` works from any folder.
+PACKAGED_CONFIGS = Path(__file__).resolve().parent / "configs"
+DEFAULT_CONFIG_NAME = "default.yaml"
+
+
+def packaged_configs() -> list[str]:
+  """The names of the shipped experiment configs (`default.yaml`, `cpu.yaml`, ...)."""
+  return sorted(p.name for p in PACKAGED_CONFIGS.glob("*.yaml"))
+
+
+def resolve_config_path(path: str | Path) -> Path:
+  """`path` if it is a file; else, for a bare name (`cpu.yaml`, `cpu`,
+  `experiments/cpu.yaml`) of a shipped config, the packaged copy; else `path` unchanged
+  (load_config then reports it as not found)."""
   path = Path(path)
+  if path.is_file():
+    return path
+  if path.parent in (Path("."), Path("experiments")):
+    name = path.name if path.suffix else path.name + ".yaml"
+    if (PACKAGED_CONFIGS / name).is_file():
+      return PACKAGED_CONFIGS / name
+  return path
+
+
+def read_yaml(path: str | Path) -> dict:
+  """The mapping of a YAML config file; ConfigError (naming the file) if missing or invalid.
+  `path` may also name a shipped experiment config (`resolve_config_path`)."""
+  path = resolve_config_path(path)
   if not path.is_file():
-    raise ConfigError(f"config file not found: {path}")
+    raise ConfigError(f"config file not found: {path} (shipped configs: "
+                      f"{', '.join(packaged_configs())})")
   try:
     data = yaml.safe_load(path.read_text())
   except yaml.YAMLError as e:
@@ -459,7 +487,9 @@ def config_hash(cfg) -> str:
 
 def add_config_args(parser: argparse.ArgumentParser, default: str | None = None) -> None:
   """Adds `--config FILE` and repeatable `--set section.key=value` to a CLI."""
-  parser.add_argument("--config", default=default, help="YAML config file")
+  parser.add_argument("--config", default=default,
+                      help="YAML config file, or the name of a shipped one: "
+                      + ", ".join(packaged_configs()))
   parser.add_argument("--set", dest="overrides", action="append", default=[],
                       metavar="SECTION.KEY=VALUE", help="override a config value (repeatable)")
 

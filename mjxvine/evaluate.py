@@ -154,8 +154,8 @@ def protocol_steps(env: VineyardEnv, policy: Policy, b: int, record: Sequence[in
 
   reset(key, lanes (b,) 0-based, directions (b,) +1/-1[, worlds (b,), noise (b,)]) ->
   carry (State, alive (b,)): the envs at their lanes' starts, in `env`'s worlds `worlds`
-  (default 0) with depth noise factors `noise` (default the env's). step(carry, key) -> (carry, out): every env takes the
-  policy's action and one control step; alive turns False after an env's episode ended;
+  (default 0) with depth noise factors `noise` (default the env's).
+  step(carry, key) -> (carry, out): every env takes the policy's action and one control step; alive turns False after an env's episode ended;
   out = (xy (b, 2), action (b, 2), alive (b,) before the step, outcome (b,),
   frames(state)). frames(state): the qpos (R, nq) and float16 depth (R, H, W) of the
   envs `record`, () when none. The evaluator and `mjxvine.view` step through these.
@@ -314,7 +314,7 @@ def evaluate(cfg: Config, policy_spec: str, world: Vineyard, *, runs: int,
              noise_factor: float, lanes=None, directions=("F", "R"), seed: int = 0,
              policy: Policy | None = None, which: str = "best",
              member: int | None = None) -> dict:
-  """Runs the protocol and returns the results document (see README). which: the
+  """Runs the protocol and returns the results document (docs/evaluation.md). which: the
   checkpoint of a run directory given as `policy_spec`, "best" or "last"; member: of a
   run that trained several, which one (None: the one checkpoints/best follows)."""
   return run_protocol(cfg, policy_spec, world, runs=runs, noise_factor=noise_factor,

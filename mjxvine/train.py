@@ -2,8 +2,9 @@
 
   python -m mjxvine.train --config experiments/smoke.yaml --run-dir runs/smoke
   python -m mjxvine.train --resume runs/smoke --set train.total_env_steps=20000
-  python -m mjxvine.train --config experiments/fast.yaml --seeds 4
-  python -m mjxvine.train --config experiments/default.yaml --sweep sac.learning_rate=2e-4,1e-3
+  python -m mjxvine.train                       # the default run (experiments/default.yaml)
+  python -m mjxvine.train --config experiments/default.yaml --seeds 3 \
+      --sweep sac.learning_rate=2e-4,1e-3
 
 The run around the trainer (`mjxvine.trainer`: pure, compiled chunks of training
 iterations): the CLI, resume, checkpoints (`mjxvine.checkpoint`), logs and plots, the
@@ -40,8 +41,9 @@ from mjxvine import policies
 from mjxvine import sac as sac_lib
 from mjxvine import starts
 from mjxvine.checkpoint import Checkpoints
-from mjxvine.config import (Config, add_config_args, changed_keys, config_from_args,
-                            enable_compile_cache, load_config, replace, to_yaml)
+from mjxvine.config import (DEFAULT_CONFIG_NAME, PACKAGED_CONFIGS, Config, add_config_args,
+                            changed_keys, config_from_args, enable_compile_cache, load_config,
+                            replace, resolve_config_path, to_yaml)
 from mjxvine.protocol import TrainEnv
 from mjxvine.rundir import (EXIT_NON_FINITE, EXIT_USAGE, EXIT_WRITE, Interrupted, RunDirBusy,
                             RunLock, StopSignals, WriteError, busy_message, clear_events,
@@ -49,7 +51,9 @@ from mjxvine.rundir import (EXIT_NON_FINITE, EXIT_USAGE, EXIT_WRITE, Interrupted
 from mjxvine.trainer import (NonFiniteError, compile_key, compiled, init_members,
                              sweep_members)
 
-DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "experiments" / "default.yaml"
+# With no --config: the documented default run, shipped inside the package (a copy of
+# experiments/default.yaml), so that it is found however mjxvine was installed.
+DEFAULT_CONFIG = PACKAGED_CONFIGS / DEFAULT_CONFIG_NAME
 
 
 @functools.lru_cache(maxsize=4)
@@ -609,8 +613,12 @@ def main(argv=None) -> int:
     if any(c not in free for c in changed):
       p.error(f"--resume: only {', '.join(free)} may change, not {changed}")
   else:
-    if args.config is None and DEFAULT_CONFIG.is_file():
+    if args.config is None:
       args.config = str(DEFAULT_CONFIG)
+      print(f"config: {DEFAULT_CONFIG} (the default run, experiments/{DEFAULT_CONFIG_NAME}; "
+            "--config picks another)", flush=True)
+    else:
+      print(f"config: {resolve_config_path(args.config)}", flush=True)
     extra = [f"train.num_seeds={args.seeds}"] if args.seeds else []
     if args.sweep:
       extra.append("train.sweep=" + "; ".join(args.sweep))

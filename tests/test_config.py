@@ -108,3 +108,34 @@ def test_new_choices_are_checked():
   with pytest.raises(ConfigError, match="^sac.mirror_augment.*yaw_offset_deg"):
     load_config(None, ["sac.mirror_augment=true", "env.yaw_reference=world",
                        "env.yaw_offset_deg=90"])
+
+
+def test_shipped_configs_match_experiments():
+  """mjxvine/configs/ (package data: what an installed `python -m mjxvine.train` uses) is a
+  copy of experiments/*.yaml: edit experiments/, then `cp experiments/*.yaml mjxvine/configs/`."""
+  from pathlib import Path
+  from mjxvine.config import PACKAGED_CONFIGS, packaged_configs, resolve_config_path
+  repo = sorted(p.name for p in Path("experiments").glob("*.yaml"))
+  assert packaged_configs() == repo
+  for name in repo:
+    assert (PACKAGED_CONFIGS / name).read_text() == (Path("experiments") / name).read_text(), name
+  assert resolve_config_path("cpu") == PACKAGED_CONFIGS / "cpu.yaml"
+  assert resolve_config_path("experiments/cpu.yaml") == Path("experiments/cpu.yaml")
+
+
+def test_train_without_config_uses_the_packaged_default(tmp_path, monkeypatch, capsys):
+  """`python -m mjxvine.train` from a folder with no experiments/ (as after a non-editable
+  install) trains the shipped default.yaml and says so."""
+  import tomllib
+  from pathlib import Path
+  from mjxvine import train as train_mod
+  from mjxvine.config import PACKAGED_CONFIGS
+  data = tomllib.loads((Path(__file__).parent.parent / "pyproject.toml").read_text())
+  assert "configs/*.yaml" in data["tool"]["setuptools"]["package-data"]["mjxvine"]
+  assert train_mod.DEFAULT_CONFIG == PACKAGED_CONFIGS / "default.yaml"
+  seen = {}
+  monkeypatch.setattr(train_mod, "train", lambda cfg, run_dir, **kw: seen.update(cfg=cfg) or {})
+  monkeypatch.chdir(tmp_path)
+  assert train_mod.main(["--run-dir", "r"]) == 0
+  assert capsys.readouterr().out.startswith(f"config: {train_mod.DEFAULT_CONFIG} (the default")
+  assert seen["cfg"] == load_config(train_mod.DEFAULT_CONFIG)

@@ -21,7 +21,7 @@ H = W = 112
 
 @pytest.fixture(scope="session")
 def exported(tmp_path_factory):
-  """(path, actor params, jitted flax deterministic action) of a SPEC-sized actor."""
+  """(path, actor params, jitted flax deterministic action) of a paper-sized actor."""
   cfg = Config()
   nets = nw.make_networks_from_config(cfg)
   obs = {"depth": jnp.zeros((1, H, W, 1)), "state": jnp.zeros((1, 3))}

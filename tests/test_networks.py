@@ -1,4 +1,4 @@
-"""Networks: exact SPEC parameter counts, shapes, and the squashed Gaussian density."""
+"""Networks: the paper's exact parameter counts (docs/design.md), shapes, and the squashed Gaussian density."""
 
 from pathlib import Path
 

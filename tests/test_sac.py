@@ -259,7 +259,7 @@ def test_buffer_bytes_per_transition():
   per8 = sac.buffer_nbytes(make(jnp.uint8)) / 1e6
   per16 = sac.buffer_nbytes(make(jnp.uint16)) / 1e6
   assert per8 < 13_000 and per8 * 1e6 < 16e9
-  assert per16 < 26_000  # uint16: 100k-200k transitions (SPEC) in 2.6-5.1 GB
+  assert per16 < 26_000  # uint16: 100k-200k transitions (docs/design.md) in 2.6-5.1 GB
 
 
 # ----------------------------------------------------------------------------------------
