@@ -613,12 +613,13 @@ def main(argv=None) -> int:
     if any(c not in free for c in changed):
       p.error(f"--resume: only {', '.join(free)} may change, not {changed}")
   else:
+    say = print if jax.process_index() == 0 else (lambda *a, **k: None)  # process 0 speaks
     if args.config is None:
       args.config = str(DEFAULT_CONFIG)
-      print(f"config: {DEFAULT_CONFIG} (the default run, experiments/{DEFAULT_CONFIG_NAME}; "
-            "--config picks another)", flush=True)
+      say(f"config: {DEFAULT_CONFIG} (the default run, experiments/{DEFAULT_CONFIG_NAME}; "
+          "--config picks another)", flush=True)
     else:
-      print(f"config: {resolve_config_path(args.config)}", flush=True)
+      say(f"config: {resolve_config_path(args.config)}", flush=True)
     extra = [f"train.num_seeds={args.seeds}"] if args.seeds else []
     if args.sweep:
       extra.append("train.sweep=" + "; ".join(args.sweep))
