@@ -237,7 +237,7 @@ def test_mirror_image_of_a_vineyard_is_the_flipped_observation():
                 yaw=jp.float32(yaw) * sign)
     m, d = env._pose_data(pose)
     return env._observe(m, d, jp.array([0.3, sign * 0.5]), jax.random.PRNGKey(0),
-                        jp.float32(0.0))
+                        jp.float32(0.0), jp.float32(env.noise_factor))
 
   obs = [observe(0, 1.0), observe(1, -1.0)]
   mirrored_obs = VineyardEnv.mirror_obs(obs[0])
