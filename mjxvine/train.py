@@ -241,6 +241,33 @@ def _score(scores: dict) -> tuple:
           -scores["eval_mae_m"])
 
 
+class MemberBest:
+  """Each member's best actor of a `--seeds` / sweep run, chosen by its own evaluations
+  from fresh starts (`_score`), as a policy file RUN_DIR/best_members/member<k>.npz
+  (`python -m mjxvine.evaluate --policy` takes it), its scores in
+  RUN_DIR/best_members/scores.json. checkpoints/best follows member 0 alone."""
+
+  def __init__(self, run_dir: Path, cfg: Config):
+    self.dir, self.cfg = run_dir / "best_members", cfg
+    self.json = self.dir / "scores.json"
+    self.scores = json.loads(self.json.read_text()) if self.json.is_file() else {}
+
+  def update(self, chunk: int, env_steps: int, rows: list[dict], actor) -> None:
+    from mjxvine.export import export_actor, meta_from_config
+    better = [k for k, row in enumerate(rows) if str(k) not in self.scores
+              or _score(row) > _score(self.scores[str(k)])]
+    if not better:
+      return
+    actor = _local(actor)
+    for k in better:
+      meta = {**meta_from_config(self.cfg), "member": k, "chunk": chunk,
+              "env_steps": env_steps}
+      export_actor(jax.tree.map(lambda x: x[k], actor), self.dir / f"member{k}.npz", meta)
+      self.scores[str(k)] = {"chunk": chunk, "env_steps": env_steps,
+                             **{n: v for n, v in rows[k].items() if n != "best"}}
+    self.json.write_text(json.dumps(self.scores, indent=1))
+
+
 def _last_row(run_dir: Path) -> dict:
   """The last row of RUN_DIR/metrics.jsonl ({} if none): that of the last member."""
   lines = (run_dir / "metrics.jsonl").read_text().splitlines() \
@@ -259,7 +286,8 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   With the vineyard env, every `train.eval_every_chunks` chunks and at the end (with
   `evaluate_at_end` or eval_every_chunks > 0) the deterministic policy drives
   `train.eval_starts` fresh starts per direction (`mjxvine.starts`); the best of these
-  evaluations (member 0) is kept as checkpoints/best, and the closing report
+  evaluations (member 0) is kept as checkpoints/best (and, with several members, each
+  member's own best actor as best_members/member<k>.npz: `MemberBest`), and the closing report
   (`evaluate_at_end`) evaluates that policy on the test world.
 
   The run holds RUN_DIR's lock throughout (`rundir.RunLock`; `rundir.RunDirBusy` if
@@ -375,19 +403,24 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
     eval_key = jax.random.PRNGKey(cfg.train.seed + 1)  # the same starts at every evaluation
     # read once: every process decides on the same scores (process 0 rewrites the file)
     best_scores = [ckpt.best_scores()]
+    member_best = MemberBest(run_dir, cfg) if seeds > 1 and primary else None
 
     def evaluate_starts(ts) -> list[dict]:
       """Evaluates every member; saves the state of all members as checkpoints/best when
-      member 0's scores are the best so far."""
+      member 0's scores are the best so far, and each member's actor as
+      best_members/member<k>.npz when its own scores are."""
       t0 = time.time()
       out = start_eval(starts_params(ts.learner.policy_params, starts.ACTOR, seeds), eval_key)
       rows = [_member_scores(out, s) for s in range(seeds)]
+      steps = int(np.max(ts.env_steps))
       best = best_scores[0]
       if best is None or _score(rows[0]) > _score(best):
-        scores = {"env_steps": int(np.max(ts.env_steps)), **rows[0]}
+        scores = {"env_steps": steps, **rows[0]}
         ckpt.save_best(chunk_index, ts, scores)
         best_scores[0] = {"chunk": chunk_index, **scores}
         rows[0]["best"] = True
+      if member_best is not None:
+        member_best.update(chunk_index, steps, rows, ts.learner.policy_params)
       say(f"evaluated {2 * cfg.train.eval_starts} fresh starts in {time.time() - t0:.0f} s: "
           f"{_eval_line(rows[0])}" + (" (new best)" if rows[0].get("best") else ""))
       return rows

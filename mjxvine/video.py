@@ -280,12 +280,12 @@ def _mp4_writer(path: Path, width: int, height: int, fps: float):
 
 
 def write_video(frames: Iterable[np.ndarray], mp4: str | Path | None = None,
-                gif: str | Path | None = None, fps: float = 20.0, gif_every: int = 2,
-                gif_width: int = 320) -> int:
+                gif: str | Path | None = None, fps: float = 20.0, gif_every: int = 4,
+                gif_width: int = 320, gif_colors: int = 96) -> int:
   """Writes frames (H, W, 3) uint8 (H, W even) in one pass: an MP4 at `mp4` (needs
   imageio-ffmpeg; RenderError without it) and/or a looping GIF at `gif` (Pillow only; every
-  `gif_every`-th frame at `gif_width` px, small enough for a README). Returns the number
-  of frames rendered."""
+  `gif_every`-th frame at `gif_width` px in `gif_colors` colours: a 50 s run at 320x240
+  is about 2.7 MB, small enough for a README). Returns the number of frames rendered."""
   from PIL import Image
   if mp4 is None and gif is None:
     raise ValueError("write_video: give mp4 and/or gif")
@@ -304,7 +304,7 @@ def write_video(frames: Iterable[np.ndarray], mp4: str | Path | None = None,
         if img.width != gif_width:
           img = img.resize((gif_width, round(img.height * gif_width / img.width)),
                            Image.Resampling.BILINEAR)
-        images.append(img.quantize(colors=128, method=Image.Quantize.MEDIANCUT))
+        images.append(img.quantize(colors=gif_colors, method=Image.Quantize.MEDIANCUT))
       count += 1
   finally:
     if writer is not None:

@@ -215,3 +215,32 @@ def test_a_member_of_a_seeds_run(tmp_path):
     checkpoint.restore_actor_params(tmp_path, member=3)
   with pytest.raises(ValueError, match="member 1: this run trained one member"):
     checkpoint.select_member(_actor(1), 1)
+
+
+def test_each_member_keeps_its_own_best_policy(tmp_path, tiny_actor):
+  """A --seeds run writes each member's best actor (by its own evaluations) as a policy
+  file; a worse evaluation keeps the file, and the files load with numpy alone."""
+  from mjxvine.config import load_config
+  from mjxvine.deploy import NumpyPolicy
+  from mjxvine.train import MemberBest
+
+  _, actor, obs = tiny_actor
+  cfg = load_config(None, ["camera.width=36", "camera.height=36", "sac.hidden=8",
+                           "sac.conv_features=2"])
+  stacked = jax.tree.map(lambda x: jp.stack([x, 2 * x]), actor)
+  row = lambda f, r, mae: {"eval_success_forward": f, "eval_success_reverse": r,
+                           "eval_mae_m": mae}
+  best = MemberBest(tmp_path, cfg)
+  best.update(1, 100, [row(0.5, 0.5, 0.2), row(0.0, 1.0, 0.1)], stacked)
+  best.update(2, 200, [row(0.5, 0.5, 0.1), row(0.0, 0.5, 0.1)], jax.tree.map(
+      lambda x: 3 * x, stacked))  # member 0 better (lower MAE), member 1 worse
+  scores = MemberBest(tmp_path, cfg).scores  # read back, as a resumed run does
+  assert {k: v["chunk"] for k, v in scores.items()} == {"0": 2, "1": 1}
+  for k, scale in ((0, 3.0), (1, 2.0)):
+    policy = NumpyPolicy.load(tmp_path / "best_members" / f"member{k}.npz")
+    assert policy.meta["member"] == k
+    with np.load(tmp_path / "best_members" / f"member{k}.npz") as arrays:
+      np.testing.assert_allclose(arrays["mean/kernel"],
+                                 scale * np.asarray(actor["mean"]["kernel"]), rtol=1e-6)
+    action = policy.action(np.asarray(obs["depth"][0, ..., 0]), np.zeros(3))
+    assert action.shape == (2,) and np.all(np.isfinite(action))

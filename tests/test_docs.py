@@ -293,9 +293,7 @@ def test_no_reference_outside_the_repository():
 
 
 def test_relative_links_exist():
-  """Markdown links and images to repository files point at files that exist (files the
-  parallel work will add are listed in PENDING)."""
-  pending = {"models/jackal.npz", "docs/results/reproduction.md"}
+  """Markdown links and images to repository files point at files that exist."""
   link = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
   bad = []
   for f in DOC_FILES:
@@ -303,7 +301,7 @@ def test_relative_links_exist():
       if re.match(r"^[a-z]+:", target):
         continue
       path = (f.parent / target).resolve()
-      if not path.exists() and str(path.relative_to(ROOT)) not in pending:
+      if not path.exists():
         bad.append(f"{f.relative_to(ROOT)}: {target}")
   assert not bad
 

@@ -54,6 +54,7 @@ def test_observation_is_depth_and_state_only(env, fns):
   assert not np.allclose(env.world_model(0).geom_pos, env.world_model(1).geom_pos)
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_reward_matches_the_paper(env, fns):
   _, step = fns
   s = _start(fns)
@@ -140,6 +141,7 @@ def test_nan_physics_resets_only_that_env(env, fns):
   assert float(jp.sum(s2.metrics["physics"])) == 1
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_yaw_offset_and_start_directions():
   """yaw_reference=world: env.yaw_offset_deg shifts the yaw input (wrapped);
   start_directions=reverse draws only -x starts, whose world yaw is near +-pi and
@@ -156,6 +158,7 @@ def test_yaw_offset_and_start_directions():
   assert np.all(np.abs(observed + np.pi / 2) < np.deg2rad(15))
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_yaw_relative_to_the_episode_start(env):
   """yaw_reference=start: the yaw input is the world yaw minus the heading at the episode
   start plus a training jitter within +-yaw_reference_jitter_deg (20, drawn anew at
@@ -174,6 +177,7 @@ def test_yaw_relative_to_the_episode_start(env):
   np.testing.assert_allclose(np.cos(observed - (world - ref)), 1.0, atol=1e-4)
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_heading_to_the_centreline_ahead_weighted_by_speed():
   """heading_target=lane: r_h's angle is measured to the centreline heading_lookahead_m
   ahead of the nearest point (so a robot beside the centreline, heading along the lane, is

@@ -140,6 +140,7 @@ def test_log_prob_stable_for_saturated_tanh():
   assert np.isfinite(np.asarray(lp)).all()
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_bfloat16_compute_tracks_float32():
   """sac.compute_dtype=bfloat16: the same float32 parameters; the critic and actor losses
   of a fixed batch within 3 % of float32's, their gradients pointing the same way (cosine

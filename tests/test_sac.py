@@ -402,6 +402,7 @@ def test_brax_env_smoke():
   assert all(np.isfinite(float(v)) for v in metrics.values())
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_update_many_with_depth_buffer():
   """End to end on dict observations: insert depth frames, sample, G gradient steps."""
   n, size = 2, 33  # the smallest image the tower takes
@@ -423,6 +424,7 @@ def test_update_many_with_depth_buffer():
   assert all(np.isfinite(float(v)) for v in metrics.values())
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_learning_rate_lives_in_the_state_and_vmaps(tiny):
   """`with_hyperparams` sets the learning rate per vmapped member: lr 0 leaves the
   networks unchanged, and a member's step size scales with its own rate."""
@@ -480,6 +482,7 @@ def test_policy_params_are_the_actor_or_its_polyak_average(tiny):
     assert moved > 0.0
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_reused_critic_features_score_the_actor_with_the_pre_update_critics():
   """sac.reuse_critic_features: the update's actor loss equals the actor loss under the
   critics before their update (towers run once for the critic and actor losses), the

@@ -165,6 +165,7 @@ def test_resuming_a_finished_run_says_it_is_complete(first_run, monkeypatch, cap
   assert exit_info.value.code == 2 and "sac.learning_rate" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   """export -> .npz holds the checkpoint's actor; `evaluate --policy x.npz` runs it; a
   policy for another image size is refused in one line."""

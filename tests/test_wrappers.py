@@ -7,6 +7,7 @@ import json
 import jax
 import jax.numpy as jp
 import numpy as np
+import pytest
 from brax.envs.base import Env, State
 
 from mjxvine import train as train_mod
@@ -56,6 +57,7 @@ def test_brax_env_truncates_and_resets():
   assert np.all(s.done == 0) and np.all(s.info["steps"] == 1)
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_sac_trainer_learns_a_brax_env(tmp_path):
   cfg = load_config(None, [
       "env.num_envs=8", "sac.batch_size=64", "sac.buffer_size=20000", "sac.warmup_steps=400",

@@ -1,0 +1,75 @@
+"""The shipped policy, models/jackal.npz: it loads and acts with numpy alone, its metadata
+is the config that trained it (experiments/jackal.yaml), and on the JAX evaluator it
+drives test world 0's lane 1 forward (straight) and lane 4 in reverse (curved) to the end
+of the row."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+from mjxvine import evaluate as ev
+from mjxvine import runs
+from mjxvine.config import config_hash, load_config, to_dict
+from mjxvine.deploy import NumpyPolicy
+from mjxvine.protocol import OUTCOMES, SUCCESS
+from mjxvine.worlds import load_test_world
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / "models" / "jackal.npz"
+CONFIG = ROOT / "experiments" / "jackal.yaml"
+
+_NUMPY_ONLY = textwrap.dedent("""
+  import sys
+  BLOCKED = ("jax", "jaxlib", "flax", "mujoco", "brax", "optax", "orbax")
+  class Block:
+    def find_spec(self, name, path=None, target=None):
+      if name.split(".")[0] in BLOCKED:
+        raise ImportError(f"blocked import of {name}")
+  sys.meta_path.insert(0, Block())
+  import numpy as np
+  from mjxvine.deploy import NumpyPolicy
+  policy = NumpyPolicy.load(sys.argv[1])
+  h, w = policy.meta["image_size"]
+  depth = np.full((h, w), 3.0, np.float32)
+  depth[:, : w // 3] = 1.0  # a row close on the left
+  v, w = policy(depth, np.zeros(3, np.float32))
+  assert not [m for m in sys.modules if m.split(".")[0] in BLOCKED]
+  print(v, w)
+""")
+
+
+def test_loads_and_acts_with_numpy_alone():
+  env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get(
+      "PYTHONPATH", "")]), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+  out = subprocess.run([sys.executable, "-c", _NUMPY_ONLY, str(MODEL)], capture_output=True,
+                       text=True, env=env, timeout=120)
+  assert out.returncode == 0, out.stderr
+  v, w = (float(x) for x in out.stdout.split())
+  meta = NumpyPolicy.load(MODEL).meta
+  assert meta["action_low"][0] <= v <= meta["action_high"][0]
+  assert meta["action_low"][1] <= w <= meta["action_high"][1]
+
+
+def test_metadata_is_the_config_that_trained_it():
+  meta = NumpyPolicy.load(MODEL).meta
+  cfg = load_config(str(CONFIG))
+  assert meta["config"] == json.loads(json.dumps(to_dict(cfg)))
+  assert meta["config_hash"] == config_hash(cfg)
+  assert meta["image_size"] == [cfg.camera.height, cfg.camera.width]
+  assert meta["max_depth_m"] == cfg.camera.max_depth_m
+
+
+def test_drives_a_straight_and_a_curved_lane_to_the_end():
+  cfg, _ = runs.policy_config(MODEL)
+  world = load_test_world(cfg.world)
+  assert world.lanes[0].shape == "straight" and world.lanes[3].shape == "curved"
+  noise = cfg.eval.noise_factor
+  raw, _ = ev.rollout_cases(cfg, str(MODEL), [world], [(0, 1, "F", noise), (0, 4, "R", noise)])
+  assert [OUTCOMES[int(o)] for o in raw["outcome"]] == [OUTCOMES[SUCCESS]] * 2
+  doc = ev.summarize(cfg, world, [(0, 1, "F", noise), (0, 4, "R", noise)], [0, 1], raw)
+  assert doc["overall"]["mae_m_rows"] < 0.15  # near the centre line, not along a row
