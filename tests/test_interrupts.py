@@ -121,6 +121,7 @@ def test_a_lock_left_by_a_killed_process_does_not_block(tmp_path):
     assert rundir.lock_holder(tmp_path)["pid"] == os.getpid()
 
 
+@pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_a_failed_checkpoint_write_is_one_line_and_keeps_the_previous(tmp_path, monkeypatch,
                                                                       capsys):
   import orbax.checkpoint as ocp
