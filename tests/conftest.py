@@ -6,6 +6,7 @@ once, and a second local run of the suite compiles little. The slow tests (marke
 `slow`: the learning run, 4 devices, the notebook) run with `pytest -m slow`."""
 
 import os
+import textwrap
 from pathlib import Path
 
 # Keep XLA to what the CI machine has, and quiet.
@@ -15,6 +16,19 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       str(Path(__file__).resolve().parent.parent / ".pytest_cache" / "xla"))
 
 import pytest  # noqa: E402
+
+# The start of a subprocess script that must run with numpy alone (the robot's side):
+# importing jax, flax, mujoco, brax, optax or orbax raises; BLOCKED names them.
+NUMPY_ONLY_PRELUDE = textwrap.dedent("""
+  import sys
+  BLOCKED = ("jax", "jaxlib", "flax", "mujoco", "brax", "optax", "orbax")
+  class Block:
+    def find_spec(self, name, path=None, target=None):
+      if name.split(".")[0] in BLOCKED:
+        raise ImportError(f"blocked import of {name}")
+      return None
+  sys.meta_path.insert(0, Block())
+""")
 
 from mjxvine.config import load_config  # noqa: E402
 

@@ -15,6 +15,7 @@ import pytest
 from mjxvine import deploy, export
 from mjxvine import networks as nw
 from mjxvine.config import Config, config_hash
+from conftest import NUMPY_ONLY_PRELUDE
 
 H = W = 112
 
@@ -79,15 +80,8 @@ def test_export_metadata(exported):
   assert meta["mjxvine_version"] and meta["num_hidden"] == 2
 
 
-_NO_JAX = textwrap.dedent("""
-  import sys, time
-  BLOCKED = ("jax", "jaxlib", "flax", "mujoco", "brax", "optax", "orbax")
-  class Block:
-    def find_spec(self, name, path=None, target=None):
-      if name.split(".")[0] in BLOCKED:
-        raise ImportError(f"blocked import of {name}")
-      return None
-  sys.meta_path.insert(0, Block())
+_NO_JAX = NUMPY_ONLY_PRELUDE + textwrap.dedent("""
+  import time
   import numpy as np
   from mjxvine.deploy import NumpyPolicy
   policy = NumpyPolicy.load(sys.argv[1])

@@ -11,6 +11,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+from conftest import NUMPY_ONLY_PRELUDE
 
 from mjxvine import evaluate as ev
 from mjxvine import runs
@@ -23,14 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "jackal.npz"
 CONFIG = ROOT / "experiments" / "jackal.yaml"
 
-_NUMPY_ONLY = textwrap.dedent("""
-  import sys
-  BLOCKED = ("jax", "jaxlib", "flax", "mujoco", "brax", "optax", "orbax")
-  class Block:
-    def find_spec(self, name, path=None, target=None):
-      if name.split(".")[0] in BLOCKED:
-        raise ImportError(f"blocked import of {name}")
-  sys.meta_path.insert(0, Block())
+_NUMPY_ONLY = NUMPY_ONLY_PRELUDE + textwrap.dedent("""
   import numpy as np
   from mjxvine.deploy import NumpyPolicy
   policy = NumpyPolicy.load(sys.argv[1])
