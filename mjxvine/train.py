@@ -660,7 +660,9 @@ def main(argv=None) -> int:
     run_dir = Path(args.run_dir or f"runs/{datetime.datetime.now():%Y%m%d-%H%M%S}")
     if run_dir.exists() and not run_dir.is_dir():
       p.error(f"--run-dir {run_dir}: exists and is not a directory")
-  if lock_holder(run_dir) is not None:
+  # One process checks the lock here; with several, train() takes it in process 0 and every
+  # process refuses together (process 0's own lock would stop the others here).
+  if jax.process_count() == 1 and lock_holder(run_dir) is not None:
     print(f"error: {busy_message(run_dir)}", file=sys.stderr)
     return EXIT_USAGE
   if not args.resume and (run_dir / "checkpoints").exists():

@@ -82,6 +82,7 @@ def test_reward_matches_the_paper(env, fns):
   assert np.all(d_prev - d_now > 0.01)  # it drove towards the EoR (from rest)
 
 
+@pytest.mark.slow  # compiles the env step (~45 s, 2 cores); the trainer's tests step it
 def test_terminations(env, fns):
   _, step = fns
   half = float(env.lanes.inter_row[0]) / 2
@@ -108,6 +109,7 @@ def test_terminations(env, fns):
                              atol=1e-5)
 
 
+@pytest.mark.slow  # compiles the env step (~45 s, 2 cores); the trainer's tests step it
 def test_timeout_is_a_truncation_and_poses_change_every_k_episodes(env, fns):
   _, step = fns
   s = _start(fns, along=(3.0,) * N)
@@ -129,6 +131,7 @@ def test_timeout_is_a_truncation_and_poses_change_every_k_episodes(env, fns):
   np.testing.assert_allclose(starts[2], starts[3], atol=1e-5)
 
 
+@pytest.mark.slow  # compiles the env step (~45 s, 2 cores); the trainer's tests step it
 def test_nan_physics_resets_only_that_env(env, fns):
   _, step = fns
   s = _start(fns)

@@ -11,6 +11,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import NUMPY_ONLY_PRELUDE
 
 from mjxvine import evaluate as ev
@@ -58,6 +59,7 @@ def test_metadata_is_the_config_that_trained_it():
   assert meta["max_depth_m"] == cfg.camera.max_depth_m
 
 
+@pytest.mark.slow  # a minute on 2 cores: it compiles the evaluator at the policy's image size
 def test_drives_a_straight_and_a_curved_lane_to_the_end():
   cfg, _ = runs.policy_config(MODEL)
   world = load_test_world(cfg.world)

@@ -159,6 +159,7 @@ def test_worlds_cli(tmp_path):
     assert (out / "world.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow  # compiles mjx.step (~20 s on 2 cores)
 def test_batch_of_different_worlds_steps(cfg):
   """Two different worlds in one mjx.Model: fields really differ, and each world steps as
   MuJoCo's C physics steps it."""
