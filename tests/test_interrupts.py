@@ -102,7 +102,7 @@ def test_signals_stop_at_the_chunk_end_and_a_second_ctrl_c_at_once():
   assert rundir.exit_code(signal.SIGINT) == 130 and rundir.exit_code(signal.SIGTERM) == 143
 
 
-def test_a_lock_left_by_a_killed_process_does_not_block(tmp_path):
+def test_a_lock_left_by_a_killed_process_does_not_block(tmp_path, capsys):
   code = ("import sys, time; from mjxvine.rundir import RunLock; "
           f"RunLock({str(tmp_path)!r}).acquire(); print('locked', flush=True); time.sleep(60)")
   proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
@@ -113,6 +113,10 @@ def test_a_lock_left_by_a_killed_process_does_not_block(tmp_path):
     assert holder["pid"] == proc.pid
     with pytest.raises(rundir.RunDirBusy, match=f"process {proc.pid} on "):
       rundir.RunLock(tmp_path).acquire()
+    # a trainer on the locked directory: refused in one line naming the holder, exit 2
+    assert train_mod.main(_argv(tmp_path, 40)) == rundir.EXIT_USAGE
+    err = _error_lines(capsys.readouterr().err)
+    assert len(err) == 1 and f"in use by process {proc.pid} on " in err[0], err
   finally:
     proc.kill()
     proc.wait()
