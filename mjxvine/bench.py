@@ -408,7 +408,7 @@ def _update_args(p: argparse.ArgumentParser) -> None:
                  help="comma-separated SAC batch sizes")
   p.add_argument("--grad-steps", type=_positive_int, default=None,
                  help="gradient steps per timed call (default sac.grad_steps_per_iter)")
-  p.add_argument("--conv-impl", default="xla", choices=("xla", "dot"),
+  p.add_argument("--conv-impl", default="xla", choices=("xla", "dot", "shift"),
                  help="the conv tower's convolutions (mjxvine.networks.CONV_IMPLS)")
   p.add_argument("--compare", action="store_true",
                  help="also time the program compiled with XLA's default options (on a "
@@ -416,8 +416,12 @@ def _update_args(p: argparse.ArgumentParser) -> None:
 
 
 def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
-  """SAC gradient steps/s (`update_many`: sample from a full replay, twin-critic, actor
-  and target updates) at the config's image size and networks, per batch size.
+  """SAC gradient steps/s (sample from a full replay, twin-critic, actor and target
+  updates) at the config's image size and networks, per batch size, timed as the trainer
+  runs them: where a chunk is a host loop (the CPU, `trainer.scan_chunks`), one jitted
+  gradient step (`update_from`) per call, G calls per iteration; else `update_many`, G
+  steps in one program. (On the CPU, `update_many` runs its steps inside a loop, about 3x
+  slower: docs/results/cpu-update-speed.md.)
 
   Each row also gives the achieved GFLOP/s (XLA's cost-analysis flops per call / median
   seconds per call), the machine's matmul GFLOP/s (`matmul_gflops`, timed right after)
@@ -426,8 +430,10 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
   `sac.learner_compiler_options()`, as the trainer compiles it ("options" column)."""
   from mjxvine import networks as nw  # pylint: disable=import-outside-toplevel
   from mjxvine import sac as sac_lib  # pylint: disable=import-outside-toplevel
+  from mjxvine.trainer import scan_chunks  # pylint: disable=import-outside-toplevel
   rows = []
   g = args.grad_steps or cfg.sac.grad_steps_per_iter
+  host = not scan_chunks(cfg)
   tuned = sac_lib.learner_compiler_options()
   variants = [("learner", tuned)] + ([("xla default", None)] if args.compare and tuned else [])
   for b in (int(x) for x in args.batch_sizes.split(",")):
@@ -444,11 +450,18 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
     buffer = buffer.replace(rows_written=jp.int32(buffer.num_rows))  # full (zeros)
     learner = sac.init(jax.random.PRNGKey(0), obs)
     for name, options in variants:
-      t = time_call(jax.jit(sac.update_many, compiler_options=options), learner, buffer,
-                    jax.random.PRNGKey(1))
+      if host:  # G calls of one step: the figures of one call, times G
+        t = time_call(jax.jit(sac.update_from, compiler_options=options), learner, buffer,
+                      jax.random.PRNGKey(1))
+        t = {k: (v * g if k in ("call_s", "flops", "bytes_accessed") and v is not None
+                 else v) for k, v in t.items()}
+      else:
+        t = time_call(jax.jit(sac.update_many, compiler_options=options), learner, buffer,
+                      jax.random.PRNGKey(1))
       gflops = None if t["flops"] is None else t["flops"] / t["call_s"] / 1e9
       mm = matmul_gflops()
       rows.append(dict(batch=b, image=f"{h}x{w}", conv=args.conv_impl, options=name,
+                       program="update_from (host loop)" if host else "update_many",
                        grad_steps_per_call=g, grad_steps_per_s=g / t["call_s"],
                        samples_per_s=g * b / t["call_s"], compile_s=t["compile_s"],
                        flops_per_grad_step=_per(t["flops"], g),

@@ -218,33 +218,37 @@ def test_tower_sees_every_pixel_of_each_config(config_file):
   assert (reach.sum(axis=1) > 0).all(), f"{config_file}: rows without gradient"
 
 
+@pytest.mark.parametrize("impl, channels", [("dot", 3), ("shift", 1)])
 @pytest.mark.parametrize("stride", [1, 2])
-def test_conv3x3_dot_matches_lax_conv_values_and_gradients(stride):
-  """im2col and a dot (and its hand-written gradient) equal XLA's convolution to float32
-  rounding, also for sizes a strided VALID conv does not cover evenly."""
+def test_conv3x3_matches_lax_conv_values_and_gradients(impl, channels, stride):
+  """im2col and a dot (its gradient written by hand), and the one-channel conv as a sum of
+  9 strided slices, equal XLA's convolution in values and gradients (w.r.t. the image and
+  the kernel) to float32 rounding, also for sizes a strided conv does not cover evenly."""
+  conv = {"dot": nw.conv3x3_dot, "shift": nw.conv3x3_shift}[impl]
   kx, kk, kd = jax.random.split(jax.random.PRNGKey(0), 3)
-  x = jax.random.normal(kx, (2, 12, 11, 3))
-  kernel = jax.random.normal(kk, (3, 3, 3, 4))
+  x = jax.random.normal(kx, (2, 12, 11, channels))
+  kernel = jax.random.normal(kk, (3, 3, channels, 4))
   ref = lambda x, k: jax.lax.conv_general_dilated(
       x, k, (stride, stride), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
-  dot = lambda x, k: nw.conv3x3_dot(x, k, stride)
-  y_ref, y = jax.jit(ref)(x, kernel), jax.jit(dot)(x, kernel)
+  ours = lambda x, k: conv(x, k, stride)
+  y_ref, y = jax.jit(ref)(x, kernel), jax.jit(ours)(x, kernel)
   assert y.shape == y_ref.shape
   np.testing.assert_allclose(y, y_ref, rtol=1e-5, atol=1e-5)
   dy = jax.random.normal(kd, y.shape)
   grads = lambda f: jax.jit(lambda x, k: jax.vjp(f, x, k)[1](dy))(x, kernel)
-  for g, g_ref in zip(grads(dot), grads(ref)):
+  for g, g_ref in zip(grads(ours), grads(ref)):
     np.testing.assert_allclose(g, g_ref, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("image", ["random", "constant"])
-def test_dot_tower_matches_xla_tower(image):
-  """`conv_impl="dot"` gives the tower's features and gradients (params and input) of
-  the XLA tower; on a constant image, whose max-pool windows tie, the gradient goes to
-  the same pixel."""
+@pytest.mark.parametrize("image, impl", [("random", "dot"), ("constant", "dot"),
+                                         ("random", "shift")])
+def test_other_tower_impls_match_the_xla_tower(image, impl):
+  """`conv_impl="dot"` (and "shift") gives the tower's features and gradients (params
+  and input) of the XLA tower; on a constant image, whose max-pool windows tie, the
+  gradient goes to the same pixel."""
   x = (jax.random.uniform(jax.random.PRNGKey(1), (3, 40, 40, 1), maxval=5.0)
        if image == "random" else jnp.full((3, 40, 40, 1), 2.0))
-  towers = [nw.ConvTower(4, 0.2, conv_impl=impl) for impl in ("xla", "dot")]
+  towers = [nw.ConvTower(4, 0.2, conv_impl=i) for i in ("xla", impl)]
   params = towers[0].init(jax.random.PRNGKey(0), x)
   params = jax.tree.map(lambda p: p + 0.1, params)  # nonzero biases
   loss = lambda t: jax.jit(jax.value_and_grad(
