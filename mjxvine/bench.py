@@ -450,14 +450,11 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
     buffer = buffer.replace(rows_written=jp.int32(buffer.num_rows))  # full (zeros)
     learner = sac.init(jax.random.PRNGKey(0), obs)
     for name, options in variants:
+      t = time_call(jax.jit(sac.update_from if host else sac.update_many,
+                            compiler_options=options), learner, buffer, jax.random.PRNGKey(1))
       if host:  # G calls of one step: the figures of one call, times G
-        t = time_call(jax.jit(sac.update_from, compiler_options=options), learner, buffer,
-                      jax.random.PRNGKey(1))
         t = {k: (v * g if k in ("call_s", "flops", "bytes_accessed") and v is not None
                  else v) for k, v in t.items()}
-      else:
-        t = time_call(jax.jit(sac.update_many, compiler_options=options), learner, buffer,
-                      jax.random.PRNGKey(1))
       gflops = None if t["flops"] is None else t["flops"] / t["call_s"] / 1e9
       mm = matmul_gflops()
       rows.append(dict(batch=b, image=f"{h}x{w}", conv=args.conv_impl, options=name,

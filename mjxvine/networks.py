@@ -149,15 +149,23 @@ def _conv3x3_dot_bwd(stride, res, dy):
 conv3x3_dot.defvjp(_conv3x3_dot_fwd, _conv3x3_dot_bwd)
 
 
+def _is_tower_conv(rhs, window_strides, padding, lhs_dilation, rhs_dilation,
+                   feature_group_count) -> bool:
+  """Whether `lax.conv_general_dilated`'s arguments (as `nn.Conv` passes them) are one of
+  the tower's convs: a 3x3 kernel, VALID, equal strides, no dilation or groups."""
+  return (rhs.shape[:2] == (3, 3) and padding == "VALID" and len(set(window_strides)) == 1
+          and all(d == 1 for d in (lhs_dilation or ()) + (rhs_dilation or ()))
+          and feature_group_count == 1)
+
+
 def _dot_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None,
                               rhs_dilation=None, dimension_numbers=None,
                               feature_group_count=1, precision=None, **_):
   """`lax.conv_general_dilated`'s signature (as `nn.Conv` calls it) for the tower's convs
   only: 3x3 kernels, VALID, equal strides, NHWC, no dilation or groups."""
   del dimension_numbers, precision  # nn.Conv passes NHWC / HWIO, default precision
-  if (rhs.shape[:2] != (3, 3) or padding != "VALID" or len(set(window_strides)) != 1
-      or any(d != 1 for d in (lhs_dilation or ()) + (rhs_dilation or ()))
-      or feature_group_count != 1):
+  if not _is_tower_conv(rhs, window_strides, padding, lhs_dilation, rhs_dilation,
+                        feature_group_count):
     raise NotImplementedError("conv3x3_dot: 3x3 VALID convs with equal strides only")
   return conv3x3_dot(lhs, rhs, int(window_strides[0]))
 
@@ -204,13 +212,16 @@ def _shift_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=
                                 feature_group_count=1, precision=None, **kw):
   """`lax.conv_general_dilated`'s signature (as `nn.Conv` calls it): `conv3x3_shift` for
   a one-channel 3x3 VALID conv with equal strides (the tower's first), else XLA's."""
-  if (rhs.shape[:3] == (3, 3, 1) and padding == "VALID" and len(set(window_strides)) == 1
-      and all(d == 1 for d in (lhs_dilation or ()) + (rhs_dilation or ()))
-      and feature_group_count == 1):
+  if rhs.shape[2] == 1 and _is_tower_conv(rhs, window_strides, padding, lhs_dilation,
+                                           rhs_dilation, feature_group_count):
     return conv3x3_shift(lhs, rhs, int(window_strides[0]))
   return jax.lax.conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation,
                                       rhs_dilation, dimension_numbers, feature_group_count,
                                       precision=precision, **kw)
+
+
+# what `nn.Conv` calls instead of `lax.conv_general_dilated`, per `conv_impl` ("xla": none)
+_CONV_HOOKS = {"dot": _dot_conv_general_dilated, "shift": _shift_conv_general_dilated}
 
 
 def max_pool_2x2(x: jax.Array) -> jax.Array:
@@ -249,9 +260,8 @@ class ConvTower(nn.Module):
     if self.conv_impl not in CONV_IMPLS:
       raise ValueError(f"conv_impl {self.conv_impl!r}: expected one of {CONV_IMPLS}")
     dot = self.conv_impl == "dot"
-    conv = ({"conv_general_dilated": _dot_conv_general_dilated} if dot else
-            {"conv_general_dilated": _shift_conv_general_dilated}
-            if self.conv_impl == "shift" else {})
+    hook = _CONV_HOOKS.get(self.conv_impl)
+    conv = {"conv_general_dilated": hook} if hook else {}
     for i, (stride, pool) in enumerate(CONV_LAYERS):
       x = nn.Conv(self.features, (3, 3), (stride, stride), padding="VALID", dtype=self.dtype,
                   name=f"conv{i}", **conv)(x)
