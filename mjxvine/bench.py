@@ -438,9 +438,7 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
   variants = [("learner", tuned)] + ([("xla default", None)] if args.compare and tuned else [])
   for b in (int(x) for x in args.batch_sizes.split(",")):
     c = config_lib.replace(cfg, sac={"batch_size": b, "grad_steps_per_iter": g})
-    nets = nw.make_networks_from_config(c)
-    nets = nets._replace(actor=nets.actor.clone(conv_impl=args.conv_impl),
-                         critic=nets.critic.clone(conv_impl=args.conv_impl))
+    nets = nw.make_networks_from_config(c, conv_impl=args.conv_impl)
     sac = sac_lib.make_sac(nets, c.sac)
     h, w = c.camera.height, c.camera.width
     n = 16

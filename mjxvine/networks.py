@@ -87,12 +87,11 @@ def pad_for_tower(x: jax.Array) -> jax.Array:
 # and one dot, with a hand-written gradient that is dots and slices too (never XLA's
 # convolution); max pooling becomes a reshape and a max. Exact to float32 rounding. On
 # XLA's CPU backend (jax 0.10) the concatenation costs more than the convolutions it
-# replaces, so the default stays "xla" (lax.conv_general_dilated) on every backend; the
-# CPU's fast path is a compiler option of the learner instead (`mjxvine.sac`,
-# `learner_compiler_options`). Kept for `python -m mjxvine.bench update --conv-impl`.
+# replaces, so "dot" is never a default; it is kept for
+# `python -m mjxvine.bench update --conv-impl dot`.
 # `conv_impl="shift"` (opt-in) runs only the first conv, whose image has one channel, as
-# `conv3x3_shift`: 1.35x the CPU gradient steps/s of `cpu.yaml`
-# (docs/results/cpu-update-speed.md).
+# `conv3x3_shift`: 1.25x the gradient steps/s of the trainer's CPU step for `cpu.yaml`
+# (docs/results/cpu-update-speed.md). The default everywhere is "xla".
 
 CONV_IMPLS = ("xla", "dot", "shift")
 
@@ -408,12 +407,13 @@ class SACNetworks(NamedTuple):
 def make_networks(action_low: Sequence[float], action_high: Sequence[float], hidden: int = 256,
                   conv_features: int = 32, depth_scale: float = 1.0,
                   log_std_min: float = -20.0, log_std_max: float = 2.0,
-                  compute_dtype: str = "float32") -> SACNetworks:
+                  compute_dtype: str = "float32", conv_impl: str = "xla") -> SACNetworks:
   """Builds the actor and twin critic for an action box [action_low, action_high].
 
   `depth_scale` multiplies the depth (metres) before the first conv; the paper's
   networks are `hidden=256, conv_features=32` (two hidden layers). `compute_dtype`: "float32"
-  or "bfloat16" (mixed precision, see the module docstring).
+  or "bfloat16" (mixed precision, see the module docstring). `conv_impl`: how the conv
+  towers compute their convolutions (`CONV_IMPLS`; the same parameters either way).
   """
   dtype = jnp.dtype(compute_dtype)
   low = jnp.asarray(action_low, jnp.float32)
@@ -422,12 +422,12 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
     raise ValueError(f"bad action box: low={action_low}, high={action_high}")
   hs = (hidden, hidden)
   actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, log_std_min, log_std_max,
-                dtype)
-  critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype)
+                dtype, conv_impl)
+  critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype, conv_impl=conv_impl)
   return SACNetworks(actor, critic, low, high)
 
 
-def make_networks_from_config(cfg) -> SACNetworks:
+def make_networks_from_config(cfg, conv_impl: str = "xla") -> SACNetworks:
   """The vineyard networks of a `mjxvine.config.Config`.
 
   Action box `config.action_box`; depth scaled by `config.depth_input_scale` so that the
@@ -437,7 +437,7 @@ def make_networks_from_config(cfg) -> SACNetworks:
       *action_box(cfg), hidden=cfg.sac.hidden,
       conv_features=cfg.sac.conv_features, depth_scale=depth_input_scale(cfg),
       log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
-      compute_dtype=cfg.sac.compute_dtype)
+      compute_dtype=cfg.sac.compute_dtype, conv_impl=conv_impl)
 
 
 def init_params(nets: SACNetworks, key: jax.Array, obs: Obs) -> tuple[Any, Any]:

@@ -183,7 +183,6 @@ def learner_compiler_options() -> dict | None:
   return options
 
 
-
 class SAC(NamedTuple):
   """SAC functions closed over the networks and config (all jit-able).
 

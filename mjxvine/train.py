@@ -579,7 +579,8 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
         cfg, "checkpoint", world, runs=runs, noise_factor=cfg.eval.noise_factor,
         policy=policies.actor_policy(sac.nets, actor),
         video=ev.video_after_train(world) if cfg.train.video else ())
-    doc["policy"] = f"{run_dir} (best checkpoint, seed 0)"
+    member = ", member 0" if seeds > 1 else ""
+    doc["policy"] = f"{run_dir} (best checkpoint, train.seed {cfg.train.seed}{member})"
     ev.write_results(doc, world, run_dir / "eval")
     row["eval_test_success"] = doc["overall"]["success"]
     row["eval_test_runs"] = doc["overall"]["runs"]

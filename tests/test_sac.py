@@ -545,11 +545,12 @@ def test_mirror_half_flips_whole_transitions():
     sac.make_sac(nets, SACConfig(mirror_augment=True))
 
 
-def test_cpu_learner_options_give_the_same_losses_and_gradients():
+@pytest.mark.parametrize("conv_impl", ["xla", "shift"])
+def test_cpu_learner_gives_the_same_losses_and_gradients(conv_impl):
   """A fixed depth batch: the critic and actor losses and their gradients compiled with
-  `learner_compiler_options()` (the trainer's) are those of the program compiled with
-  XLA's default options, to float32 rounding (the tower's convs as dots:
-  tests/test_networks.py)."""
+  `learner_compiler_options()` (the trainer's) and with the tower's first conv as
+  `conv_impl` are those of XLA's convolution compiled with XLA's default options, to
+  float32 rounding (the tower alone: tests/test_networks.py)."""
   size, b = 33, 4
   keys = jax.random.split(jax.random.PRNGKey(0), 4)
   obs = lambda k: {"depth": jax.random.uniform(k, (b, size, size, 1), maxval=5.0),
@@ -557,8 +558,9 @@ def test_cpu_learner_options_give_the_same_losses_and_gradients():
   batch = sac.Transition(obs(keys[0]), jax.random.uniform(keys[1], (b, 2)), jnp.ones(b),
                          jnp.zeros(b), jnp.zeros(b), obs(keys[2]))
 
-  def losses(options):
-    nets = nw.make_networks(LOW, HIGH, hidden=8, conv_features=4, depth_scale=0.2)
+  def losses(options, impl):
+    nets = nw.make_networks(LOW, HIGH, hidden=8, conv_features=4, depth_scale=0.2,
+                            conv_impl=impl)
     actor, critic = nw.init_params(nets, keys[3], batch.obs)
     target = jax.tree.map(lambda x: 0.9 * x, critic)
 
@@ -570,6 +572,6 @@ def test_cpu_learner_options_give_the_same_losses_and_gradients():
       return c[0][0], c[1], a[0][0], a[1]
     return jax.jit(run, compiler_options=options)(actor, critic, target)
 
-  ref, out = losses(None), losses(sac.learner_compiler_options())
+  ref, out = losses(None, "xla"), losses(sac.learner_compiler_options(), conv_impl)
   for x, y in zip(jax.tree.leaves(out), jax.tree.leaves(ref)):
     np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(y))))
