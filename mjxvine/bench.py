@@ -408,8 +408,9 @@ def _update_args(p: argparse.ArgumentParser) -> None:
                  help="comma-separated SAC batch sizes")
   p.add_argument("--grad-steps", type=_positive_int, default=None,
                  help="gradient steps per timed call (default sac.grad_steps_per_iter)")
-  p.add_argument("--conv-impl", default="xla", choices=("xla", "dot", "shift"),
-                 help="the conv tower's convolutions (mjxvine.networks.CONV_IMPLS)")
+  p.add_argument("--conv-impl", default=None, choices=("xla", "dot", "shift"),
+                 help="the conv tower's convolutions (mjxvine.networks.CONV_IMPLS; "
+                      "default: the trainer's, mjxvine.sac.learner_conv_impl())")
   p.add_argument("--compare", action="store_true",
                  help="also time the program compiled with XLA's default options (on a "
                       "CPU: with YNNPACK's convolutions), interleaved")
@@ -436,9 +437,10 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
   host = not scan_chunks(cfg)
   tuned = sac_lib.learner_compiler_options()
   variants = [("learner", tuned)] + ([("xla default", None)] if args.compare and tuned else [])
+  conv_impl = args.conv_impl or sac_lib.learner_conv_impl()
   for b in (int(x) for x in args.batch_sizes.split(",")):
     c = config_lib.replace(cfg, sac={"batch_size": b, "grad_steps_per_iter": g})
-    nets = nw.make_networks_from_config(c, conv_impl=args.conv_impl)
+    nets = nw.make_networks_from_config(c, conv_impl=conv_impl)
     sac = sac_lib.make_sac(nets, c.sac)
     h, w = c.camera.height, c.camera.width
     n = 16
@@ -455,7 +457,7 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
                  else v) for k, v in t.items()}
       gflops = None if t["flops"] is None else t["flops"] / t["call_s"] / 1e9
       mm = matmul_gflops()
-      rows.append(dict(batch=b, image=f"{h}x{w}", conv=args.conv_impl, options=name,
+      rows.append(dict(batch=b, image=f"{h}x{w}", conv=conv_impl, options=name,
                        program="update_from (host loop)" if host else "update_many",
                        grad_steps_per_call=g, grad_steps_per_s=g / t["call_s"],
                        samples_per_s=g * b / t["call_s"], compile_s=t["compile_s"],

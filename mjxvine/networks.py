@@ -89,9 +89,10 @@ def pad_for_tower(x: jax.Array) -> jax.Array:
 # XLA's CPU backend (jax 0.10) the concatenation costs more than the convolutions it
 # replaces, so "dot" is never a default; it is kept for
 # `python -m mjxvine.bench update --conv-impl dot`.
-# `conv_impl="shift"` (opt-in) runs only the first conv, whose image has one channel, as
+# `conv_impl="shift"` runs only the first conv, whose image has one channel, as
 # `conv3x3_shift`: 1.25x the gradient steps/s of the trainer's CPU step for `cpu.yaml`
-# (docs/results/cpu-update-speed.md). The default everywhere is "xla".
+# (docs/results/cpu-update-speed.md). The trainer uses it on the CPU
+# (`sac.learner_conv_impl`); the default of these functions is "xla".
 
 CONV_IMPLS = ("xla", "dot", "shift")
 

@@ -82,7 +82,8 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
                           conv_features=cfg.sac.conv_features,
                           depth_scale=depth_input_scale(cfg),
                           log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
-                          compute_dtype=cfg.sac.compute_dtype)
+                          compute_dtype=cfg.sac.compute_dtype,
+                          conv_impl=sac_lib.learner_conv_impl())
   mirror = ((env.mirror_obs, env.mirror_action) if hasattr(env, "mirror_obs") else None)
   sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch, mirror=mirror)
   warmup = cfg.sac.warmup_steps

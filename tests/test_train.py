@@ -14,6 +14,7 @@ from mjxvine import train as train_mod
 from mjxvine import trainer
 from mjxvine.checkpoint import Checkpoints
 from mjxvine.config import load_config
+from mjxvine.sac import learner_conv_impl
 
 OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=2", "env.max_steps=30",
              "sac.batch_size=16", "sac.buffer_size=512", "sac.warmup_steps=40",
@@ -114,6 +115,9 @@ def test_resume_with_replay_is_exact(tmp_path):
       train_mod.train(cfg, run, resume=i > 0, quiet=True, evaluate_at_end=False)
     runs[name] = run
   sac, init_fn, _ = train_mod.compiled_trainer(_cfg(80))
+  # the trainer's towers compute as `learner_conv_impl` says (on the CPU the shifted
+  # first conv, whose losses test_sac compares with XLA's convolution)
+  assert sac.nets.actor.conv_impl == sac.nets.critic.conv_impl == learner_conv_impl()
   template = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
   (_, a), (_, b) = (Checkpoints(runs[n], True).restore(template) for n in runs)
   assert int(a.env_steps) == int(b.env_steps) == 80
