@@ -139,6 +139,11 @@ class EnvConfig:
   pose_reset_every: int = _f(10, 1, 100000, doc="episodes between new start poses")
   start_yaw_jitter_deg: float = _f(10.0, 0.0, 90.0)
   start_lateral_jitter_m: float = _f(0.1, 0.0, 1.0)
+  start_along: tuple[float, float] = _f(
+      (0.0, 0.6), 0.0, 0.95, doc="training starts lie this fraction of the row length from "
+      "the lane's start in the travel direction, drawn uniformly (a random point along the "
+      "lane); the evaluation from fresh starts always draws from [0, 0.6] "
+      "(starts.EVAL_START_ALONG)")
   yaw_reference: str = _f("start", choices=("start", "world"),
                           doc="the state's yaw: relative to the heading at the episode start "
                           "(a robot zeroing its IMU at the row entrance; this project's "
@@ -163,8 +168,13 @@ class EnvConfig:
                                   "the centreline from the robot's nearest point, m")
   train_noise_factor: tuple[float, float] = _f(
       (0.0, 0.0), 0.0, 100.0, doc="training episodes draw their depth noise factor k "
-      "uniformly from this range (domain randomisation); [0, 0]: camera.noise_factor always. "
+      "from this range (domain randomisation; as train_noise_draw says); [0, 0]: "
+      "camera.noise_factor always. "
       "Evaluation always uses camera.noise_factor (or the noise sweep's)")
+  train_noise_draw: str = _f("uniform", choices=("uniform", "log_uniform"),
+                             doc="how train_noise_factor's k is drawn: uniformly, or "
+                             "log-uniformly (as many episodes in [1, 2] as in [5, 10]: "
+                             "most see a usable image, some a near-blind one; needs lo > 0)")
   start_directions: str = _f("both", choices=("both", "forward", "reverse"),
                              doc="travel directions of random starts (forward: +x, world "
                              "yaw near 0; reverse: yaw near +-pi, where the yaw input wraps)")
@@ -346,6 +356,9 @@ def _check_cross_fields(cfg: Config) -> None:
   if cfg.world.trunk_height_m[1] >= cfg.world.canopy_top_m[0]:
     raise ConfigError(f"world.trunk_height_m = {list(cfg.world.trunk_height_m)}: "
                       f"must stay below world.canopy_top_m {list(cfg.world.canopy_top_m)}")
+  if cfg.env.train_noise_draw == "log_uniform" and cfg.env.train_noise_factor[0] <= 0:
+    raise ConfigError(f"env.train_noise_factor = {list(cfg.env.train_noise_factor)}: "
+                      "env.train_noise_draw = log_uniform needs a range above 0")
   if cfg.env.v_min >= cfg.env.v_max:
     raise ConfigError(f"env.v_min = {cfg.env.v_min}: must be < env.v_max = {cfg.env.v_max}")
   steps = cfg.env.control_dt / cfg.env.physics_dt
@@ -481,8 +494,10 @@ def to_yaml(cfg) -> str:
 
 
 def config_hash(cfg) -> str:
-  """A short stable hash of a config, to tie exported policies to their run."""
-  return hashlib.sha256(json.dumps(to_dict(cfg), sort_keys=True).encode()).hexdigest()[:12]
+  """A short stable hash of a config (or of its dict, as a policy file records it), to tie
+  exported policies to their run."""
+  doc = cfg if isinstance(cfg, dict) else to_dict(cfg)
+  return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def add_config_args(parser: argparse.ArgumentParser, default: str | None = None) -> None:

@@ -169,11 +169,14 @@ class VineyardEnv(Env):
     """The mjx.Model of pool world `world` (a traced index is fine)."""
     return take_world(self.model, self.model_axes, world)
 
-  def reset(self, rng: jax.Array, direction: float | None = None) -> State:
+  def reset(self, rng: jax.Array, direction: float | None = None,
+            along: tuple[float, float] | None = None) -> State:
     """A fresh env at a random start pose of a random pool world; `direction` (+1
-    forward, -1 reverse) forces the travel direction instead of `env.start_directions`."""
+    forward, -1 reverse) forces the travel direction instead of `env.start_directions`,
+    `along` (fractions of the row length) the range of the start point instead of
+    `env.start_along`."""
     k_pose, k_obs, k_next = jax.random.split(rng, 3)
-    pose = self.sample_pose(k_pose, direction)
+    pose = self.sample_pose(k_pose, direction, along)
     return self._start(pose, k_obs, k_next, episodes=jp.int32(0))
 
   def reset_to(self, rng: jax.Array, world, lane, direction, along=0.0, lateral=0.0,
@@ -199,9 +202,11 @@ class VineyardEnv(Env):
     return self._start(pose, k_obs, k_next, info["episodes"])
 
   # ------------------------------------------------------------------ start poses
-  def sample_pose(self, key: jax.Array, direction: float | None = None) -> dict:
+  def sample_pose(self, key: jax.Array, direction: float | None = None,
+                  along: tuple[float, float] | None = None) -> dict:
     """A random start: pool world, lane, direction (`env.start_directions`, unless given:
-    +1 forward, -1 reverse), point along the lane, jitter."""
+    +1 forward, -1 reverse), point along the lane (uniform over the fractions `along` of
+    the row length from the lane's start, `env.start_along` unless given), jitter."""
     kw, kl, kd, ka, kx, ky = jax.random.split(key, 6)
     env = self.cfg.env
     world = jax.random.randint(kw, (), 0, len(self.worlds))
@@ -212,7 +217,8 @@ class VineyardEnv(Env):
     else:
       direction = jp.float32(direction)
     length = self.worlds[0].length_m
-    along = jax.random.uniform(ka, (), minval=0.0, maxval=0.6 * length)
+    lo, hi = env.start_along if along is None else along
+    along = jax.random.uniform(ka, (), minval=lo * length, maxval=hi * length)
     lateral = jax.random.uniform(kx, (), minval=-1.0, maxval=1.0) * env.start_lateral_jitter_m
     yaw = jax.random.uniform(ky, (), minval=-1.0, maxval=1.0) * jp.deg2rad(
         env.start_yaw_jitter_deg)
@@ -293,11 +299,14 @@ class VineyardEnv(Env):
 
   # ------------------------------------------------------------------ dynamics
   def _noise_factor(self, key: jax.Array, training: bool) -> jax.Array:
-    """The depth noise factor k of an episode: drawn from `env.train_noise_factor` for
-    training starts when that range is set, else the env's own."""
+    """The depth noise factor k of an episode: drawn from `env.train_noise_factor` (as
+    `env.train_noise_draw` says) for training starts when that range is set, else the
+    env's own."""
     lo, hi = self.cfg.env.train_noise_factor
     if not training or hi <= 0:
       return jp.float32(self.noise_factor)
+    if self.cfg.env.train_noise_draw == "log_uniform":
+      return jp.exp(jax.random.uniform(key, (), minval=np.log(lo), maxval=np.log(hi)))
     return jax.random.uniform(key, (), minval=lo, maxval=hi)
 
   def _observe(self, m, d, prev_action, key, yaw_ref, noise_factor) -> dict:

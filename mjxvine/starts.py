@@ -23,6 +23,9 @@ CHECK_EVERY = 10  # steps between host checks whether every episode has ended
 # drive-straight action [v_max, 0], and uniform random actions.
 ACTOR, STRAIGHT, RANDOM = 0, 1, 2
 BASELINES = {"straight": STRAIGHT, "random": RANDOM}
+# The start points' range (fractions of the row length from the lane's start) of every
+# evaluation, whatever `env.start_along` the run trains from: one yardstick for all runs.
+EVAL_START_ALONG = (0.0, 0.6)
 
 
 def with_baselines(act_deterministic: Callable, low: jax.Array, high: jax.Array) -> Callable:
@@ -53,7 +56,8 @@ def make_start_eval(env: VineyardEnv, act: Callable, starts: int, members: int =
   directions = jp.concatenate([jp.ones(starts), -jp.ones(starts)])
 
   def reset(key):
-    state = jax.vmap(env.reset)(jax.random.split(key, n), directions)
+    state = jax.vmap(lambda k, d: env.reset(k, d, EVAL_START_ALONG))(
+        jax.random.split(key, n), directions)
     z = jp.zeros(n, jp.float32)
     return state, jp.full(n, RUNNING, jp.int32), z, z, z
 

@@ -161,6 +161,53 @@ def test_yaw_offset_and_start_directions():
   assert np.all(np.abs(observed + np.pi / 2) < np.deg2rad(15))
 
 
+def test_start_points_along_the_lane(env):
+  """Random starts lie uniformly over the fractions `along` of the row length from the
+  lane's start in the travel direction: env.start_along by default, or the range given
+  (the fresh-start evaluation's fixed [0, 0.6])."""
+  def fractions(env, along):
+    e = env.env
+    poses = jax.jit(jax.vmap(lambda k: e.sample_pose(k, None, along)))(
+        jax.random.split(jax.random.PRNGKey(5), 256))
+    line = np.asarray(e.lanes.centerline)[np.asarray(poses["world"]), np.asarray(poses["lane"])]
+    k = line.shape[1]
+    # the start point is a centerline sample shifted by the lateral jitter (< 0.3 m)
+    idx = np.argmin(np.sum((line - np.asarray(poses["xy"])[:, None]) ** 2, -1), -1)
+    forward = np.asarray(poses["direction"]) > 0
+    return np.where(forward, idx, k - 1 - idx) / (k - 1), forward
+  assert env.env.cfg.env.start_along == (0.0, 0.6)
+  for along in [None, (0.8, 0.95)]:
+    lo, hi = (0.0, 0.6) if along is None else along
+    frac, forward = fractions(env, along)
+    slack = 0.02  # a centerline sample is 1/80 of the row; the lateral jitter shifts little
+    assert np.all(frac >= lo - slack) and np.all(frac <= hi + slack), (along, frac.min(), frac.max())
+    assert frac.max() - frac.min() > 0.8 * (hi - lo)  # spread over the range
+    assert forward.any() and (~forward).any()
+
+
+def test_training_noise_factor_draws():
+  """env.train_noise_factor [lo, hi]: training episodes draw k uniformly or (train_noise_draw
+  = log_uniform) log-uniformly from it, evaluation episodes keep the env's factor; a
+  log-uniform draw needs lo > 0."""
+  from types import SimpleNamespace
+  from mjxvine.config import ConfigError
+  from mjxvine.env import VineyardEnv
+  keys = jax.random.split(jax.random.PRNGKey(6), 4000)
+  for draw, share_high in [("uniform", 5 / 9.5), ("log_uniform", np.log(2) / np.log(20))]:
+    cfg = load_config("experiments/smoke.yaml", [
+        "env.train_noise_factor=[0.5, 10]", f"env.train_noise_draw={draw}"])
+    fake = SimpleNamespace(cfg=cfg, noise_factor=1.5)
+    k = np.asarray(jax.vmap(lambda key: VineyardEnv._noise_factor(fake, key, True))(keys))
+    assert k.min() >= 0.5 - 1e-5 and k.max() <= 10 + 1e-5
+    np.testing.assert_allclose(np.mean(k >= 5), share_high, atol=0.03)
+    if draw == "log_uniform":  # as many draws in [1, 2] as in [5, 10]
+      np.testing.assert_allclose(np.mean((k >= 1) & (k <= 2)), share_high, atol=0.03)
+    assert float(VineyardEnv._noise_factor(fake, keys[0], False)) == 1.5
+  with pytest.raises(ConfigError, match="env.train_noise_factor"):
+    load_config("experiments/smoke.yaml", ["env.train_noise_factor=[0, 10]",
+                                            "env.train_noise_draw=log_uniform"])
+
+
 @pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_yaw_relative_to_the_episode_start(env):
   """yaw_reference=start: the yaw input is the world yaw minus the heading at the episode

@@ -255,5 +255,7 @@ def test_other_tower_impls_match_the_xla_tower(image, impl):
       lambda p, x: jnp.sum(jnp.sin(t.apply(p, x)) ** 2), argnums=(0, 1)))
   (v_ref, g_ref), (v, g) = (loss(t)(params, x) for t in towers)
   np.testing.assert_allclose(v, v_ref, rtol=1e-5)
+  # float32 sums of terms up to max|b| in another order: small entries of a gradient
+  # (cancellations) differ by a few 1e-6 of the largest one, more on some CPUs' kernels
   for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(g_ref)):
-    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(b))))
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(b))))
