@@ -226,6 +226,12 @@ class SACConfig:
                             "negated: the task is symmetric), so that both networks learn "
                             "from each experience on both sides and the actor gets no "
                             "steering bias from unbalanced data; no extra cost")
+  mirror_average: bool = _f(False, doc="the test-time (deterministic) action is the mean "
+                            "of the actor's action on the observation and the mirror of its "
+                            "action on the mirrored observation: a policy exactly symmetric "
+                            "left-right, with no steering bias, at twice the actor's cost; "
+                            "used by the evaluations, the best-checkpoint choice and the "
+                            "exported policy (exploration keeps the stochastic actor)")
   reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
                                     "features of obs from the critic loss and the critics "
                                     "as they were before this step's update (as brax's SAC "
@@ -371,11 +377,12 @@ def _check_cross_fields(cfg: Config) -> None:
                       "eval.runs_after_train >= 1 (got 0)")
   if cfg.sac.log_std_min >= cfg.sac.log_std_max:
     raise ConfigError(f"sac.log_std_min = {cfg.sac.log_std_min}: must be < sac.log_std_max")
-  if (cfg.sac.mirror_augment and cfg.env.yaw_reference == "world"
-      and cfg.env.yaw_offset_deg != 0.0):
-    raise ConfigError(f"sac.mirror_augment = true: the mirror negates the yaw input, which "
-                      f"needs env.yaw_offset_deg = 0 with env.yaw_reference = world "
-                      f"(got {cfg.env.yaw_offset_deg})")
+  for key in ("mirror_augment", "mirror_average"):
+    if (getattr(cfg.sac, key) and cfg.env.yaw_reference == "world"
+        and cfg.env.yaw_offset_deg != 0.0):
+      raise ConfigError(f"sac.{key} = true: the mirror negates the yaw input, which "
+                        f"needs env.yaw_offset_deg = 0 with env.yaw_reference = world "
+                        f"(got {cfg.env.yaw_offset_deg})")
 
 
 # Hyper-parameters that a vmapped sweep may vary (they live in the learner state).

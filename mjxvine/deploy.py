@@ -10,13 +10,15 @@ runs on Python 3.8+ (ROS 2 Humble's 3.10 included), so a robot needs no mjxvine 
 copy it there (e.g. as mjxvine_deploy.py) with the policy file.
 
 The action is the deterministic test-time action of SAC: the tanh-squashed mean mapped
-onto the action box. Files are written by `mjxvine.export.export_actor`. Each conv is
-an im2col (a strided view copied into a preallocated buffer) and a single matmul;
-`python -m mjxvine.latency policy.npz` times one decision on the machine at hand
-(measured numbers are in docs/results/). On a busy CPU use one BLAS thread:
-OPENBLAS_NUM_THREADS=1 set before numpy is imported, or `NumpyPolicy.load(path,
-blas_threads=1)` with threadpoolctl installed: extra OpenBLAS threads that must wait for
-a core make each decision several times slower. Inputs are checked (shape, NaN/inf);
+onto the action box; for a file with `mirror_average` (`sac.mirror_average`), the mean
+of that action and the mirrored action on the mirrored image (one batch of two). Files
+are written by `mjxvine.export.export_actor`. Each conv is an im2col (a strided view
+copied into a preallocated buffer) and a single matmul; `python -m mjxvine.latency
+policy.npz` times one decision on the machine at hand (measured numbers are in
+docs/results/). On a busy CPU use one BLAS thread: OPENBLAS_NUM_THREADS=1 set before
+numpy is imported, or `NumpyPolicy.load(path, blas_threads=1)` with threadpoolctl
+installed: extra OpenBLAS threads that must wait for a core make each decision several
+times slower. Inputs are checked (shape, NaN/inf);
 errors are `PolicyInputError`, file problems `PolicyFormatError`. A real depth sensor
 reports "no return" as NaN, inf or 0; the simulator renders it as the maximum range, so
 `preprocess=True` maps those pixels to `max_depth_m` (or `invalid_depth`), never to 0 m,
@@ -37,6 +39,10 @@ from numpy.lib.stride_tricks import as_strided
 
 FORMAT_VERSION = 1
 META_KEY = "__meta__"
+# The left-right mirror image of the state [v_prev, w_prev, yaw] and the action [v, w] (as
+# `mjxvine.env.VineyardEnv.mirror_obs` / `mirror_action`; depth columns reversed).
+MIRROR_STATE_SIGN = np.array([1.0, -1.0, -1.0], np.float32)
+MIRROR_ACTION_SIGN = np.array([1.0, -1.0], np.float32)
 
 
 class PolicyError(ValueError):
@@ -173,6 +179,8 @@ class NumpyPolicy:
       layers = [(int(s), bool(p)) for s, p in meta["conv_layers"]]
       # bottom / right edge padding of the tower (files written before it existed: none)
       self.tower_pad = tuple(int(v) for v in meta.get("tower_pad", (0, 0)))
+      # the mean of the actions on the image and on its mirror (files before it: no)
+      self.mirror_average = bool(meta.get("mirror_average", False))
       num_hidden = int(meta["num_hidden"])
     except (KeyError, TypeError, ValueError) as e:
       raise PolicyFormatError(f"policy metadata is incomplete or invalid: {e!r}") from None
@@ -302,6 +310,17 @@ class NumpyPolicy:
     """The action array: (A,) for one input, (B, A) for a batch; float32 in the box."""
     pre = self.preprocess if preprocess is None else preprocess
     x, s, batched = self._check(depth, state, pre)
+    if self.mirror_average:  # one batch of the inputs and their mirror images
+      b = x.shape[0]
+      act = self._actor(np.concatenate([x, x[:, :, ::-1]]),
+                        np.concatenate([s, s * MIRROR_STATE_SIGN]))
+      act = 0.5 * (act[:b] + act[b:] * MIRROR_ACTION_SIGN)
+    else:
+      act = self._actor(x, s)
+    return act if batched else act[0]
+
+  def _actor(self, x: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """The actor's action (B, A) for checked inputs: depth (B, H, W, 1), state (B, S)."""
     if any(self.tower_pad):  # repeat the last rows / columns, as the tower was trained
       x = np.pad(x, ((0, 0), (0, self.tower_pad[0]), (0, self.tower_pad[1]), (0, 0)), "edge")
     for (kernel, pool), work in zip(self._convs, self._workspace(x.shape)):
@@ -315,8 +334,7 @@ class NumpyPolicy:
       h += bias
       np.maximum(h, 0.0, out=h)
     mean = h @ self._mean[0] + self._mean[1]
-    act = self.low + 0.5 * (np.tanh(mean) + 1.0) * (self.high - self.low)
-    return act if batched else act[0]
+    return self.low + 0.5 * (np.tanh(mean) + 1.0) * (self.high - self.low)
 
   def yaw_input(self, imu_yaw: float, start_yaw: float | None = None) -> float:
     """The state's yaw (rad, in [-pi, pi)) from the IMU yaw (rad) as the policy was

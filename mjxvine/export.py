@@ -38,7 +38,7 @@ import numpy as np
 import mjxvine
 from mjxvine import config as config_lib
 from mjxvine.checkpoint import WHICH, restore_actor_params, run_dir_of
-from mjxvine.deploy import FORMAT_VERSION, META_KEY
+from mjxvine.deploy import FORMAT_VERSION, META_KEY, MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN
 from mjxvine.runs import policy_config
 
 STATE_LAYOUT = ("v_prev", "w_prev", "yaw")
@@ -69,6 +69,8 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
       # the state's yaw: "start", the IMU yaw minus the yaw at the row entrance; "world",
       # the IMU yaw plus yaw_offset_deg (both wrapped to [-pi, pi)); NumpyPolicy.yaw_input
       "yaw_reference": cfg.env.yaw_reference, "yaw_offset_deg": cfg.env.yaw_offset_deg,
+      # the action is the mean of the actor's on the image and its mirror (sac.mirror_average)
+      "mirror_average": cfg.sac.mirror_average,
       # the whole training config: `evaluate --policy FILE.npz` then evaluates as the run
       # does (world, episode limit, env options); the robot needs none of it
       "config": config_lib.to_dict(cfg),
@@ -179,6 +181,17 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
     x = node("Clip", [x, zero, top_c], "depth_clipped")
   # (B, H, W, 1) -> (B, 1, H, W): a reshape, since there is one channel.
   x = node("Reshape", [x, const("nchw_shape", np.array([-1, 1, h, w], np.int64))], "nchw")
+  state = "state"
+  mirror = bool(meta.get("mirror_average", False))
+  if mirror:  # one batch of the inputs and their mirror images: columns reversed
+    flipped = node("Slice", [x, const("last", np.array([-1], np.int64)),
+                             const("before_first", np.array([-(1 << 62)], np.int64)),
+                             const("width_axis", np.array([3], np.int64)),
+                             const("step_back", np.array([-1], np.int64))], "mirrored")
+    x = node("Concat", [x, flipped], "with_mirror", axis=0)
+    state_sign = const("state_sign", MIRROR_STATE_SIGN)
+    state = node("Concat", [state, node("Mul", [state, state_sign], "state_mirrored")],
+                 "states", axis=0)
   ph, pw = (int(v) for v in meta.get("tower_pad", (0, 0)))
   if ph or pw:  # repeat the bottom rows / right columns, as the tower was trained
     x = node("Pad", [x, const("tower_pad", np.array([0, 0, 0, 0, 0, 0, ph, pw], np.int64))],
@@ -194,7 +207,7 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
     if pool:
       x = node("MaxPool", [x], f"conv{i}_pool", kernel_shape=[2, 2], strides=[2, 2])
   x = node("Flatten", [node("GlobalAveragePool", [x], "avg_pool")], "features", axis=1)
-  x = node("Concat", [x, "state"], "torso", axis=1)
+  x = node("Concat", [x, state], "torso", axis=1)
   for i in range(int(meta["num_hidden"])):
     x = node("Gemm", [x, const(f"dense{i}_w", arrays[f"dense{i}/kernel"]),
                       const(f"dense{i}_b", arrays[f"dense{i}/bias"])], f"dense{i}")
@@ -203,8 +216,18 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
                     const("mean_b", arrays["mean/bias"])], "mean")
   # low + (tanh(u) + 1) / 2 (high - low) = tanh(u) (high - low) / 2 + (high + low) / 2
   x = node("Mul", [node("Tanh", [x], "tanh"), const("half_range", (high - low) / 2)], "scaled")
-  nodes.append(helper.make_node("Add", [x, const("mid", (high + low) / 2)], ["action"],
-                                name="action"))
+  if mirror:  # the mean of the action and the mirrored action on the mirror image
+    x = node("Add", [x, const("mid", (high + low) / 2)], "actions")
+    nodes.append(helper.make_node("Split", [x], ["action_direct", "action_of_mirror"],
+                                  name="split", axis=0))
+    x = node("Add", ["action_direct", node("Mul", ["action_of_mirror",
+                                                   const("action_sign", MIRROR_ACTION_SIGN)],
+                                           "action_mirrored")], "action_sum")
+    nodes.append(helper.make_node("Mul", [x, const("half", np.float32(0.5))], ["action"],
+                                  name="action"))
+  else:
+    nodes.append(helper.make_node("Add", [x, const("mid", (high + low) / 2)], ["action"],
+                                  name="action"))
   graph = helper.make_graph(
       nodes, "mjxvine_actor",
       [helper.make_tensor_value_info("depth", TensorProto.FLOAT, ["batch", h, w, 1]),

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from functools import partial
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import flax.linen as nn
 import jax
@@ -499,7 +499,19 @@ def deterministic_action(mean: jax.Array, low: jax.Array, high: jax.Array) -> ja
   return squash(mean, low, high)
 
 
-def act_deterministic(nets: SACNetworks, actor_params: Any, obs: Obs) -> jax.Array:
-  """The actor's test-time action (..., A) for `obs` (any leading batch dims)."""
-  mean, _ = nets.actor.apply({"params": actor_params}, obs)
-  return deterministic_action(mean, nets.action_low, nets.action_high)
+def act_deterministic(nets: SACNetworks, actor_params: Any, obs: Obs,
+                      mirror: tuple[Callable, Callable] | None = None) -> jax.Array:
+  """The actor's test-time action (..., A) for `obs` (any leading batch dims).
+
+  mirror: (mirror_obs, mirror_action) of a left-right symmetric task (`sac.mirror_average`):
+  the action is then the mean of the action on `obs` and the mirrored action on the
+  mirrored `obs`, so that mirrored observations get exactly mirrored actions.
+  """
+  def act(o):
+    mean, _ = nets.actor.apply({"params": actor_params}, o)
+    return deterministic_action(mean, nets.action_low, nets.action_high)
+
+  if mirror is None:
+    return act(obs)
+  mirror_obs, mirror_action = mirror
+  return 0.5 * (act(obs) + mirror_action(act(mirror_obs(obs))))

@@ -16,18 +16,20 @@ from mjxvine import networks as nw
 from mjxvine.deploy import PolicyError, read_policy_file
 
 
-def actor_policy(nets: nw.SACNetworks, actor_params, *, brax: bool = False):
+def actor_policy(nets: nw.SACNetworks, actor_params, *, brax: bool = False,
+                 mirror: tuple | None = None):
   """The actor's deterministic action (the squashed mean, in the action box) as a policy.
 
   nets: the networks the params belong to (`sac.SAC.nets`, `make_networks_from_config`).
   actor_params: the actor's flax "params" dict of one member (no seeds axis).
   Returns policy(state, key) -> action (..., A) for an env State (its `.obs`, batched or
   not); the key is unused. brax=True: brax's `Policy` instead, (obs, key) -> (action, {}),
-  for `brax.training.acting.Evaluator`.
+  for `brax.training.acting.Evaluator`. mirror: (mirror_obs, mirror_action) for the
+  mirror-averaged action (`sac.mirror_average`, `networks.act_deterministic`).
   """
   def policy(state, key):
     del key
-    action = nw.act_deterministic(nets, actor_params, state if brax else state.obs)
+    action = nw.act_deterministic(nets, actor_params, state if brax else state.obs, mirror)
     return (action, {}) if brax else action
 
   return policy
@@ -72,8 +74,8 @@ def load_actor_params(path: Path, env, which: str = "best", member: int | None =
 
 def load_actor_policy(path: Path, env, which: str = "best", member: int | None = None):
   """`actor_policy` of the actor at `path` (see `load_actor_params`), for `env`'s config
-  (build it with `runs.policy_config`); PolicyError when the params do not fit that
-  config's networks."""
+  (build it with `runs.policy_config`), mirror-averaged when its `sac.mirror_average` is
+  set; PolicyError when the params do not fit that config's networks."""
   params = load_actor_params(Path(path), env, which, member)
   nets = nw.make_networks_from_config(env.cfg)
   try:
@@ -86,4 +88,5 @@ def load_actor_policy(path: Path, env, which: str = "best", member: int | None =
                       f"{env.cfg.sac.hidden}, sac.conv_features {env.cfg.sac.conv_features} "
                       f"(a run without config.yaml needs --config; {type(e).__name__}: "
                       f"{str(e).splitlines()[0][:120]})") from None
-  return actor_policy(nets, params)
+  mirror = (env.mirror_obs, env.mirror_action) if env.cfg.sac.mirror_average else None
+  return actor_policy(nets, params, mirror=mirror)

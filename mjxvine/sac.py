@@ -237,7 +237,7 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
   shard_batch: applied to every sampled batch; `mjxvine.parallel`'s `batch_constraint`
   splits it over the devices (data-parallel gradients).
   mirror: (mirror_obs, mirror_action) of a left-right symmetric env (`VineyardEnv`'s),
-  needed by `cfg.mirror_augment`.
+  needed by `cfg.mirror_augment` and `cfg.mirror_average`.
 
   `update_many`'s loop is fully unrolled on the CPU backend when grad_steps_per_iter <=
   16 (XLA:CPU runs convolutions inside a loop body ~20x slower, jax-ml/jax#12868), else
@@ -248,9 +248,9 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
   # vmapped over seeds can also differ in it (`mjxvine.train` sweeps).
   opt = optax.inject_hyperparams(optax.adam)(learning_rate=cfg.learning_rate)
   unroll = jax.default_backend() == "cpu" and cfg.grad_steps_per_iter <= 16
-  if cfg.mirror_augment and mirror is None:
-    raise ValueError("sac.mirror_augment needs an env with a mirror image (mirror_obs, "
-                     "mirror_action): the vineyard's; this env has none")
+  if (cfg.mirror_augment or cfg.mirror_average) and mirror is None:
+    raise ValueError("sac.mirror_augment and sac.mirror_average need an env with a mirror "
+                     "image (mirror_obs, mirror_action): the vineyard's; this env has none")
 
   def init(key: jax.Array, obs: Obs) -> LearnerState:
     actor_params, critic_params = nw.init_params(nets, key, obs)
@@ -327,7 +327,7 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
     return nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)[0]
 
   def act_deterministic(actor_params: Params, obs: Obs) -> jax.Array:
-    return nw.act_deterministic(nets, actor_params, obs)
+    return nw.act_deterministic(nets, actor_params, obs, mirror if cfg.mirror_average else None)
 
   return SAC(nets, cfg, init, update, update_from, update_many, act, act_deterministic)
 

@@ -577,7 +577,9 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
         f"the paper's protocol; for information)...")
     doc, tracks = ev.run_protocol(
         cfg, "checkpoint", world, runs=runs, noise_factor=cfg.eval.noise_factor,
-        policy=policies.actor_policy(sac.nets, actor),
+        policy=policies.actor_policy(sac.nets, actor, mirror=(
+            (ev.VineyardEnv.mirror_obs, ev.VineyardEnv.mirror_action)
+            if cfg.sac.mirror_average else None)),
         video=ev.video_after_train(world) if cfg.train.video else ())
     member = ", member 0" if seeds > 1 else ""
     doc["policy"] = f"{run_dir} (best checkpoint, train.seed {cfg.train.seed}{member})"

@@ -60,8 +60,13 @@ def main():
   # gradient is ~0 may flip sign with the summation order, all others must agree.
   out["param_diff_frac"] = float(np.mean(diffs > 1e-3 * 2e-4))
   out["max_param_diff"] = float(diffs.max())
-  out["obs_max_diff"] = float(np.max(np.abs(np.asarray(ts1.env_state.obs["depth"]) -
-                                            np.asarray(ts4.env_state.obs["depth"]))))
+  # A ray that grazes a geom's edge may hit on one layout and miss on the other, so the
+  # depth images are compared pixel by pixel, the rest of the observation as a whole.
+  depth_diff = np.abs(np.asarray(ts1.env_state.obs["depth"]) -
+                      np.asarray(ts4.env_state.obs["depth"]))
+  out["depth_frac_differ"] = float(np.mean(depth_diff > 1e-3))
+  out["state_obs_max_diff"] = float(np.max(np.abs(np.asarray(ts1.env_state.obs["state"]) -
+                                                  np.asarray(ts4.env_state.obs["state"]))))
   out["updates"] = [int(ts1.learner.step), int(ts4.learner.step)]
   json.dump(out, sys.stdout)
 

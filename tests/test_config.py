@@ -105,9 +105,10 @@ def test_new_choices_are_checked():
     load_config(None, ["sac.reward_scale=0"])
   # the mirror negates the yaw input: wrong for a world yaw measured from an offset
   assert load_config(None, ["sac.mirror_augment=true"]).sac.mirror_augment
-  with pytest.raises(ConfigError, match="^sac.mirror_augment.*yaw_offset_deg"):
-    load_config(None, ["sac.mirror_augment=true", "env.yaw_reference=world",
-                       "env.yaw_offset_deg=90"])
+  for key in ("mirror_augment", "mirror_average"):
+    with pytest.raises(ConfigError, match=f"^sac.{key}.*yaw_offset_deg"):
+      load_config(None, [f"sac.{key}=true", "env.yaw_reference=world",
+                         "env.yaw_offset_deg=90"])
 
 
 def test_shipped_configs_match_experiments():

@@ -143,3 +143,34 @@ def test_export_cli_orbax_to_onnx(small_policy, tmp_path):
   depth, state = _inputs(2, 6)
   (got,) = _session(run / "policy.onnx").run(["action"], {"depth": depth, "state": state})
   np.testing.assert_allclose(got, deploy.NumpyPolicy.load(path).action(depth, state), atol=1e-5)
+
+
+def test_mirror_averaged_policy_is_symmetric_in_flax_numpy_and_onnx(small_policy, tmp_path):
+  """`sac.mirror_average`: the action on a mirrored observation is the mirrored action,
+  exactly, where the plain actor's is not; the JAX action (`networks.act_deterministic`
+  with the env's mirror), NumpyPolicy and the ONNX graph agree."""
+  from mjxvine.env import VineyardEnv
+
+  path, params, _ = small_policy
+  arrays, meta = deploy.read_policy_file(path)
+  meta = dict(meta, mirror_average=True)
+  policy, plain = deploy.NumpyPolicy(arrays, meta), deploy.NumpyPolicy(arrays, dict(meta))
+  plain.mirror_average = False
+  sess = _session(export.export_onnx((arrays, meta), tmp_path / "mirror.onnx"))
+  cfg = config_lib.replace(config_lib.Config(), camera={"height": H, "width": W})
+  nets = nw.make_networks_from_config(cfg)
+  mirror = (VineyardEnv.mirror_obs, VineyardEnv.mirror_action)
+  depth, state = _inputs(3, 4)
+  m_depth, m_state = depth[:, :, ::-1], state * deploy.MIRROR_STATE_SIGN
+  got = policy.action(depth, state)
+  np.testing.assert_allclose(policy.action(m_depth, m_state), got * [1.0, -1.0], atol=1e-6)
+  asym = np.abs(plain.action(m_depth, m_state) - plain.action(depth, state) * [1.0, -1.0])
+  assert asym.max() > 1e-3  # the plain actor is not symmetric: the test can fail
+  np.testing.assert_allclose(got, 0.5 * (plain.action(depth, state) +
+                                         plain.action(m_depth, m_state) * [1.0, -1.0]),
+                             atol=1e-6)
+  (onnx_got,) = sess.run(["action"], {"depth": depth, "state": state})
+  np.testing.assert_allclose(onnx_got, got, atol=1e-5)
+  jax_got = jax.jit(lambda p, o: nw.act_deterministic(nets, p, o, mirror))(
+      params, {"depth": jnp.asarray(depth), "state": jnp.asarray(state)})
+  np.testing.assert_allclose(np.asarray(jax_got), got, atol=1e-5)

@@ -541,8 +541,9 @@ def test_mirror_half_flips_whole_transitions():
   np.testing.assert_array_equal(out.obs["depth"][flipped][:, :, ::-1],
                                 batch.obs["depth"][flipped])
   nets = nw.make_networks(LOW, HIGH, hidden=8)
-  with pytest.raises(ValueError, match="mirror_augment"):
-    sac.make_sac(nets, SACConfig(mirror_augment=True))
+  for key in ("mirror_augment", "mirror_average"):
+    with pytest.raises(ValueError, match=key):
+      sac.make_sac(nets, SACConfig(**{key: True}))
 
 
 @pytest.mark.parametrize("conv_impl", ["xla", "shift"])

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -64,6 +65,35 @@ def test_metadata_is_the_config_that_trained_it():
   assert meta["config_hash"] == config_hash(meta["config"])
   assert meta["image_size"] == [cfg.camera.height, cfg.camera.width]
   assert meta["max_depth_m"] == cfg.camera.max_depth_m
+
+
+def test_the_evaluator_acts_as_the_robot():
+  """On random views, the JAX policy that `evaluate` loads gives the numpy policy's
+  actions, mirror-averaged or not as the file says (`sac.mirror_average`), and
+  `--set sac.mirror_average=true` makes it exactly symmetric: a mirrored view gets the
+  mirrored action."""
+  import jax.numpy as jp
+
+  from mjxvine import policies
+  from mjxvine.env import VineyardEnv
+
+  numpy_policy = NumpyPolicy.load(MODEL)
+  cfg, _ = runs.policy_config(MODEL)
+  assert cfg.sac.mirror_average == numpy_policy.mirror_average
+  env = VineyardEnv(cfg, [load_test_world(cfg.world)])
+  rng = np.random.default_rng(0)
+  h, w = numpy_policy.meta["image_size"]
+  depth = rng.uniform(0.5, cfg.camera.max_depth_m, (4, h, w, 1)).astype(np.float32)
+  state = rng.uniform([0.0, -1.0, -0.5], [0.5, 1.0, 0.5], (4, 3)).astype(np.float32)
+  obs = {"depth": jp.asarray(depth), "state": jp.asarray(state)}
+  act = lambda policy, o: np.asarray(policy(SimpleNamespace(obs=o), None))  # a State's .obs
+  np.testing.assert_allclose(act(policies.load_actor_policy(MODEL, env), obs),
+                             numpy_policy.action(depth, state), atol=1e-4)
+  sym_cfg, _ = runs.policy_config(MODEL, overrides=["sac.mirror_average=true"])
+  sym = policies.load_actor_policy(MODEL, VineyardEnv(sym_cfg, env.worlds))
+  got = act(sym, obs)
+  np.testing.assert_allclose(act(sym, VineyardEnv.mirror_obs(obs)), got * [1.0, -1.0],
+                             atol=1e-5)
 
 
 @pytest.mark.slow  # a minute on 2 cores: it compiles the evaluator at the policy's image size
