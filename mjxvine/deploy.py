@@ -39,8 +39,9 @@ from numpy.lib.stride_tricks import as_strided
 
 FORMAT_VERSION = 1
 META_KEY = "__meta__"
-# The left-right mirror image of the state [v_prev, w_prev, yaw] and the action [v, w] (as
-# `mjxvine.env.VineyardEnv.mirror_obs` / `mirror_action`; depth columns reversed).
+# The left-right mirror image of the state [v_prev, w_prev, yaw] and the action [v, w]
+# (depth columns reversed): also what `mjxvine.env.VineyardEnv.mirror_obs` /
+# `mirror_action` use in training.
 MIRROR_STATE_SIGN = np.array([1.0, -1.0, -1.0], np.float32)
 MIRROR_ACTION_SIGN = np.array([1.0, -1.0], np.float32)
 

@@ -36,6 +36,7 @@ from mujoco import mjx
 
 from mjxvine import depth as depth_cam
 from mjxvine.config import Config, action_box, depth_input_scale
+from mjxvine.deploy import MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN
 # The outcome codes are also read from here (starts, evaluate, tests): noqa for those
 # this module does not use itself.
 from mjxvine.protocol import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
@@ -158,12 +159,12 @@ class VineyardEnv(Env):
     """The observation mirrored left-right (any leading batch dims): the depth image's
     columns reversed, and the previous turn rate and the yaw negated."""
     return {"depth": jp.flip(obs["depth"], axis=-2),
-            "state": obs["state"] * jp.array([1.0, -1.0, -1.0], obs["state"].dtype)}
+            "state": obs["state"] * jp.asarray(MIRROR_STATE_SIGN, obs["state"].dtype)}
 
   @staticmethod
   def mirror_action(action: jax.Array) -> jax.Array:
     """[v, w] mirrored left-right: [v, -w] (the turn-rate box is symmetric)."""
-    return action * jp.array([1.0, -1.0], action.dtype)
+    return action * jp.asarray(MIRROR_ACTION_SIGN, action.dtype)
 
   def world_model(self, world: jax.Array) -> mjx.Model:
     """The mjx.Model of pool world `world` (a traced index is fine)."""

@@ -216,18 +216,14 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
                     const("mean_b", arrays["mean/bias"])], "mean")
   # low + (tanh(u) + 1) / 2 (high - low) = tanh(u) (high - low) / 2 + (high + low) / 2
   x = node("Mul", [node("Tanh", [x], "tanh"), const("half_range", (high - low) / 2)], "scaled")
+  x = node("Add", [x, const("mid", (high + low) / 2)], "actions" if mirror else "action")
   if mirror:  # the mean of the action and the mirrored action on the mirror image
-    x = node("Add", [x, const("mid", (high + low) / 2)], "actions")
     nodes.append(helper.make_node("Split", [x], ["action_direct", "action_of_mirror"],
                                   name="split", axis=0))
     x = node("Add", ["action_direct", node("Mul", ["action_of_mirror",
                                                    const("action_sign", MIRROR_ACTION_SIGN)],
                                            "action_mirrored")], "action_sum")
-    nodes.append(helper.make_node("Mul", [x, const("half", np.float32(0.5))], ["action"],
-                                  name="action"))
-  else:
-    nodes.append(helper.make_node("Add", [x, const("mid", (high + low) / 2)], ["action"],
-                                  name="action"))
+    node("Mul", [x, const("half", np.float32(0.5))], "action")
   graph = helper.make_graph(
       nodes, "mjxvine_actor",
       [helper.make_tensor_value_info("depth", TensorProto.FLOAT, ["batch", h, w, 1]),
