@@ -42,6 +42,10 @@ class WorldConfig:
                          doc="train worlds: straight rows without gaps (the paper), or rows "
                          "that bend, widen their lanes and have single and wide gaps, each "
                          "drawn per world (domain randomisation; test worlds are unchanged)")
+  train_wide_gap_rows: int = _f(2, 0, 12, doc="rows of a varied train world that get one "
+                                "wide gap each (at most train_rows)")
+  train_wide_gap_plants: tuple[int, int] = _f((2, 3), 1, 5, doc="plants missing in a wide "
+                                              "gap of a varied train world (range; test worlds: 2-3)")
   train_length_m: float = _f(20.0, 4.0, 60.0)
   test_length_m: float = _f(24.0, 8.0, 60.0)
   curve_amplitude_m: float = _f(0.7, 0.0, 2.0, doc="lateral wander of curved test rows")
@@ -362,6 +366,9 @@ def _check_cross_fields(cfg: Config) -> None:
   if cfg.world.trunk_height_m[1] >= cfg.world.canopy_top_m[0]:
     raise ConfigError(f"world.trunk_height_m = {list(cfg.world.trunk_height_m)}: "
                       f"must stay below world.canopy_top_m {list(cfg.world.canopy_top_m)}")
+  if cfg.world.train_wide_gap_rows > cfg.world.train_rows:
+    raise ConfigError(f"world.train_wide_gap_rows = {cfg.world.train_wide_gap_rows}: must "
+                      f"be at most world.train_rows = {cfg.world.train_rows}")
   if cfg.env.train_noise_draw == "log_uniform" and cfg.env.train_noise_factor[0] <= 0:
     raise ConfigError(f"env.train_noise_factor = {list(cfg.env.train_noise_factor)}: "
                       "env.train_noise_draw = log_uniform needs a range above 0")

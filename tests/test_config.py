@@ -43,6 +43,8 @@ def test_yaml_and_overrides(tmp_path):
     ("env.physics_dt=0.03", "env.physics_dt"),
     ("sac.gamma=1.5", "sac.gamma"),
     ("world.terrain_amplitude_m=nan", "world.terrain_amplitude_m"),
+    ("world.train_wide_gap_rows=5", "world.train_wide_gap_rows"),  # of 4 rows
+    ("world.train_wide_gap_plants=[2,6]", "world.train_wide_gap_plants"),
 ])
 def test_bad_values_name_the_key(override, key):
   with pytest.raises(ConfigError) as e:

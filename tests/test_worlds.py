@@ -1,5 +1,6 @@
 """Procedural vineyards: ranges, determinism, the committed test world, MJCF and batching."""
 
+import dataclasses
 import json
 
 import jax
@@ -61,6 +62,21 @@ def test_ranges(cfg, kind, seed):
       r = rows[j]
       y_row = np.interp(c[:, 0], *r[np.argsort(r[:, 0])].T)
       assert np.all(sign * (y_row - c[:, 1]) > 0.5)
+
+
+@pytest.mark.parametrize("gap_rows, gap_plants", [(2, (2, 3)), (4, (4, 4))])
+def test_varied_train_worlds_have_wide_gaps(cfg, gap_rows, gap_plants):
+  world_cfg = dataclasses.replace(cfg.world, train_layout="varied",
+                                  train_wide_gap_rows=gap_rows, train_wide_gap_plants=gap_plants)
+  for seed in range(3):
+    w = generate_world("train", seed, world_cfg)
+    # the widest spacing of a row, in spacings: a gap of k plants spans k + 1 (+- jitter)
+    widest = np.array([_row_spacings(r).max() / w.spacing_m for r in w.rows()])
+    wide = widest > 2.5  # wider than a single gap (2 spacings)
+    assert wide.sum() == gap_rows, (seed, widest)
+    lo, hi = gap_plants
+    assert np.all((widest[wide] > lo + 1 - 0.25) & (widest[wide] < hi + 1 + 0.25)), widest
+    assert all(l.shape == "varied" for l in w.lanes)
 
 
 def test_curved_lanes_wander(cfg):

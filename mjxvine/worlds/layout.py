@@ -166,20 +166,26 @@ def _terrain(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
   return h
 
 
-def _pick_gaps(rng, kind, row_of_slot, x_index, n_per_row, num_rows, varied=False):
+def _pick_gaps(rng, kind, row_of_slot, x_index, n_per_row, num_rows, cfg: WorldConfig,
+               varied=False):
   """Boolean mask of plants removed as gaps (test worlds and varied train worlds).
 
-  Single gaps: 4 random plants away from the row ends. Wide gaps: 2-3 consecutive plants,
-  in the test world one in a row bounding lane 3 (row 3) and one bounding lane 5 (row 5,
-  the outer row); in a varied train world in two random rows.
+  Single gaps: 4 random plants away from the row ends. Wide gaps: consecutive plants in
+  the middle half of a row. The test world has two of 2-3 plants, one in a row bounding
+  lane 3 (row 3) and one bounding lane 5 (row 5, the outer row); a varied train world has
+  one of `cfg.train_wide_gap_plants` plants in each of `cfg.train_wide_gap_rows` random rows.
   """
   removed = np.zeros(len(row_of_slot), bool)
   if (kind != "test" and not varied) or (varied and min(n_per_row) < 12):
     return removed  # (short varied rows, as in tests, keep every plant)
-  wide_rows = (3, 5) if kind == "test" else rng.choice(num_rows, 2, replace=False)
+  if kind == "test":
+    wide_rows, (lo, hi) = (3, 5), (2, 3)
+  else:
+    wide_rows = rng.choice(num_rows, cfg.train_wide_gap_rows, replace=False)
+    lo, hi = cfg.train_wide_gap_plants
   for row in wide_rows:
     n = n_per_row[row]
-    width = int(rng.integers(2, 4))
+    width = int(rng.integers(lo, hi + 1))
     start = int(rng.integers(n // 4, 3 * n // 4 - width))
     removed |= (row_of_slot == row) & (x_index >= start) & (x_index < start + width)
   singles = 0
@@ -231,7 +237,8 @@ def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
                           rng.uniform(*cfg.canopy_width_m, num) / 2,
                           (canopy_top - trunk_height) / 2], -1)
   canopy_z = (canopy_top + trunk_height) / 2
-  keep = ~_pick_gaps(rng, kind, plant_row, x_index, [n] * num_rows, num_rows, varied)
+  keep = ~_pick_gaps(rng, kind, plant_row, x_index, [n] * num_rows, num_rows, cfg,
+                     varied)
 
   xy, row = plant_xy[keep], plant_row[keep]
   shapes = TEST_LANE_SHAPES if kind == "test" else (
