@@ -253,19 +253,25 @@ class MemberBest:
     self.scores = json.loads(self.json.read_text()) if self.json.is_file() else {}
 
   def update(self, chunk: int, env_steps: int, rows: list[dict], actor) -> None:
-    from mjxvine.export import export_actor, meta_from_config
     better = [k for k, row in enumerate(rows) if str(k) not in self.scores
               or _score(row) > _score(self.scores[str(k)])]
     if not better:
       return
     actor = _local(actor)
     for k in better:
-      meta = {**meta_from_config(self.cfg), "member": k, "chunk": chunk,
-              "env_steps": env_steps}
-      export_actor(jax.tree.map(lambda x: x[k], actor), self.dir / f"member{k}.npz", meta)
+      _export_member(self.cfg, actor, k, self.dir / f"member{k}.npz", chunk, env_steps)
       self.scores[str(k)] = {"chunk": chunk, "env_steps": env_steps,
                              **{n: v for n, v in rows[k].items() if n != "best"}}
     self.json.write_text(json.dumps(self.scores, indent=1))
+
+
+def _export_member(cfg: Config, actor, k: int | None, path: Path, chunk: int,
+                   env_steps: int) -> None:
+  """Writes member k of the (local) actor params, stacked over members, as a policy file;
+  k = None: params of a single-member run (no member axis)."""
+  from mjxvine.export import export_actor, meta_from_config
+  meta = {**meta_from_config(cfg), "member": k or 0, "chunk": chunk, "env_steps": env_steps}
+  export_actor(actor if k is None else jax.tree.map(lambda x: x[k], actor), path, meta)
 
 
 def _last_row(run_dir: Path) -> dict:
@@ -421,6 +427,9 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
         rows[0]["best"] = True
       if member_best is not None:
         member_best.update(chunk_index, steps, rows, ts.learner.policy_params)
+      if cfg.train.keep_eval_policies and primary:
+        _export_member(cfg, _local(ts.learner.policy_params), 0 if seeds > 1 else None,
+                       run_dir / "eval_policies" / f"env{steps}.npz", chunk_index, steps)
       say(f"evaluated {2 * cfg.train.eval_starts} fresh starts in {time.time() - t0:.0f} s: "
           f"{_eval_line(rows[0])}" + (" (new best)" if rows[0].get("best") else ""))
       return rows

@@ -28,8 +28,9 @@ def _cfg(steps, *extra):
                      OVERRIDES + [f"train.total_env_steps={steps}", *extra])
 
 
-# The first run also evaluates from 2 + 2 fresh starts every 2 chunks (best checkpoint).
-EVAL = ("train.eval_every_chunks=2", "train.eval_starts=2")
+# The first run also evaluates from 2 + 2 fresh starts every 2 chunks (best checkpoint),
+# keeping each evaluated policy.
+EVAL = ("train.eval_every_chunks=2", "train.eval_starts=2", "train.keep_eval_policies=true")
 
 
 @pytest.fixture(scope="module")
@@ -58,6 +59,7 @@ def test_run_writes_logs_checkpoints_and_curve(first_run):
             for r in rows if "eval_mae_m" in r]
   assert best["chunk"] == 2 * (1 + scores.index(max(scores)))
   assert row["best_eval_mae_m"] == pytest.approx(best["eval_mae_m"])
+  assert sorted(p.name for p in (run / "eval_policies").iterdir()) == ["env40.npz", "env80.npz"]
   # learning starts after the warm-up: losses are zero before, real after
   assert rows[0]["critic_loss"] == 0 and rows[-1]["critic_loss"] > 0
   assert rows[-1]["alpha"] == pytest.approx(0.2)
@@ -185,6 +187,11 @@ def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   from_run = policies.load_actor_params(run, env)
   from_npz = policies.load_actor_params(npz, env)
   for a, b in zip(jax.tree.leaves(from_run), jax.tree.leaves(from_npz)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  # the policy kept at the best evaluation is the best checkpoint's
+  best_steps = 20 * json.loads((run / "best.json").read_text())["chunk"]
+  kept = policies.load_actor_params(run / "eval_policies" / f"env{best_steps}.npz", env)
+  for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(from_npz)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   doc = evaluate.evaluate(cfg, str(npz), world, runs=1, noise_factor=1.0, lanes=(1,),
                           directions=("F",))
