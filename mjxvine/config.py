@@ -268,8 +268,9 @@ class TrainConfig:
                               "the end)")
   eval_starts: int = _f(32, 1, 4096, doc="fresh starts per direction of that evaluation")
   keep_eval_policies: bool = _f(False, doc="write member 0's evaluated policy at every such "
-                                "evaluation as RUN/eval_policies/env<steps>.npz (about 0.1 MB "
-                                "each), to compare checkpoint choices afterwards")
+                                "evaluation as RUN/eval_policies/env<steps>.npz (a policy file: "
+                                "under 0.1 MB for the CPU configs' networks, 0.4 MB for the "
+                                "paper's), to compare checkpoint choices afterwards")
   video: bool = _f(False, doc="the closing report films the best policy on the test world "
                    "(lanes 1F and 4R): MP4s in RUN/eval/videos/ (needs OpenGL and "
                    "imageio-ffmpeg, `pip install mjxvine[video]`; eval.runs_after_train >= 1)")

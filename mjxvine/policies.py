@@ -72,6 +72,15 @@ def load_actor_params(path: Path, env, which: str = "best", member: int | None =
   return jax.tree.map(jp.asarray, params)
 
 
+def averaging_mirror(cfg) -> tuple | None:
+  """`actor_policy`'s mirror for `cfg`: the vineyard's (mirror_obs, mirror_action) when
+  `sac.mirror_average` is set, else None."""
+  if not cfg.sac.mirror_average:
+    return None
+  from mjxvine.env import VineyardEnv  # (the env's imports are heavy: only when needed)
+  return VineyardEnv.mirror_obs, VineyardEnv.mirror_action
+
+
 def load_actor_policy(path: Path, env, which: str = "best", member: int | None = None):
   """`actor_policy` of the actor at `path` (see `load_actor_params`), for `env`'s config
   (build it with `runs.policy_config`), mirror-averaged when its `sac.mirror_average` is
@@ -88,5 +97,4 @@ def load_actor_policy(path: Path, env, which: str = "best", member: int | None =
                       f"{env.cfg.sac.hidden}, sac.conv_features {env.cfg.sac.conv_features} "
                       f"(a run without config.yaml needs --config; {type(e).__name__}: "
                       f"{str(e).splitlines()[0][:120]})") from None
-  mirror = (env.mirror_obs, env.mirror_action) if env.cfg.sac.mirror_average else None
-  return actor_policy(nets, params, mirror=mirror)
+  return actor_policy(nets, params, mirror=averaging_mirror(env.cfg))

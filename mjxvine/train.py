@@ -270,7 +270,7 @@ def _export_member(cfg: Config, actor, k: int | None, path: Path, chunk: int,
   """Writes member k of the (local) actor params, stacked over members, as a policy file;
   k = None: params of a single-member run (no member axis)."""
   from mjxvine.export import export_actor, meta_from_config
-  meta = {**meta_from_config(cfg), "member": k or 0, "chunk": chunk, "env_steps": env_steps}
+  meta = {**meta_from_config(cfg), "member": 0 if k is None else k, "chunk": chunk, "env_steps": env_steps}
   export_actor(actor if k is None else jax.tree.map(lambda x: x[k], actor), path, meta)
 
 
@@ -586,9 +586,7 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
         f"the paper's protocol; for information)...")
     doc, tracks = ev.run_protocol(
         cfg, "checkpoint", world, runs=runs, noise_factor=cfg.eval.noise_factor,
-        policy=policies.actor_policy(sac.nets, actor, mirror=(
-            (ev.VineyardEnv.mirror_obs, ev.VineyardEnv.mirror_action)
-            if cfg.sac.mirror_average else None)),
+        policy=policies.actor_policy(sac.nets, actor, mirror=policies.averaging_mirror(cfg)),
         video=ev.video_after_train(world) if cfg.train.video else ())
     member = ", member 0" if seeds > 1 else ""
     doc["policy"] = f"{run_dir} (best checkpoint, train.seed {cfg.train.seed}{member})"
