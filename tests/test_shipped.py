@@ -1,5 +1,5 @@
 """The shipped policy, models/jackal.npz: it loads and acts with numpy alone, its metadata
-is the config that trained it (experiments/jackal.yaml), and on the JAX evaluator it
+is the config that trained it (experiments/jackal-gaps.yaml), and on the JAX evaluator it
 drives test world 0's lane 1 forward (straight) and lane 4 in reverse (curved) to the end
 of the row."""
 
@@ -24,7 +24,7 @@ from mjxvine.worlds import load_test_world
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "jackal.npz"
-CONFIG = ROOT / "experiments" / "jackal.yaml"
+CONFIG = ROOT / "experiments" / "jackal-gaps.yaml"
 
 _NUMPY_ONLY = NUMPY_ONLY_PRELUDE + textwrap.dedent("""
   import numpy as np
@@ -53,8 +53,9 @@ def test_loads_and_acts_with_numpy_alone():
 
 def test_metadata_is_the_config_that_trained_it():
   """The file's config, read as `evaluate` reads it (settings added since the file was
-  written take their defaults, which keep the earlier behaviour), is jackal.yaml's; every
-  setting the file records is jackal.yaml's value; its hash is that of what it records."""
+  written take their defaults, which keep the earlier behaviour), is the config file's;
+  every setting the file records is the config file's value; its hash is that of what it
+  records."""
   meta = NumpyPolicy.load(MODEL).meta
   cfg = load_config(str(CONFIG))
   file_cfg, _ = runs.policy_config(MODEL)
