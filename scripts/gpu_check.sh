@@ -3,8 +3,9 @@
 # not cost the rest:
 #   1. experiments/jackal-gaps.yaml (the shipped agent's recipe) from seeds 0, 1 and 2,
 #      vmapped in one process, for STEPS env steps (default 80,000; a 2-core CPU trains
-#      70,000-150,000 in the recipe's 52 minutes); each member's best actor is chosen by its own
-#      training-time evaluations (RUN/best_members/member<k>.npz), never by a test world;
+#      70,000-150,000 in the recipe's 52 minutes); each member's best actor is chosen by
+#      its own training-time evaluations (RUN/best_members/member<k>.npz), never by a
+#      test world;
 #   2. the paper's suite (`evaluate --suite paper`) of each member's best actor, the three
 #      at once.
 # Results: $OUT/results.tgz (the run directory without checkpoints and TensorBoard
