@@ -270,7 +270,8 @@ def _export_member(cfg: Config, actor, k: int | None, path: Path, chunk: int,
   """Writes member k of the (local) actor params, stacked over members, as a policy file;
   k = None: params of a single-member run (no member axis)."""
   from mjxvine.export import export_actor, meta_from_config
-  meta = {**meta_from_config(cfg), "member": 0 if k is None else k, "chunk": chunk, "env_steps": env_steps}
+  meta = {**meta_from_config(cfg), "member": 0 if k is None else k, "chunk": chunk,
+          "env_steps": env_steps}
   export_actor(actor if k is None else jax.tree.map(lambda x: x[k], actor), path, meta)
 
 

@@ -110,8 +110,7 @@ def main(argv=None) -> int:
   trainer = trainer_evals(args.run)
 
   # the training pool at the config's noise factor: no per-episode noise draw
-  pool_cfg = replace(cfg, env={"train_noise_factor": (0.0, 0.0)},
-                     train={"eval_starts": args.pool_starts})
+  pool_cfg = replace(cfg, env={"train_noise_factor": (0.0, 0.0)})
   env = training_env(pool_cfg)
   nets = nw.make_networks_from_config(pool_cfg)
   mirror = policies.averaging_mirror(pool_cfg)

@@ -189,7 +189,7 @@ def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   for a, b in zip(jax.tree.leaves(from_run), jax.tree.leaves(from_npz)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   # the policy kept at the best evaluation is the best checkpoint's
-  best_steps = 20 * json.loads((run / "best.json").read_text())["chunk"]
+  best_steps = json.loads((run / "best.json").read_text())["env_steps"]
   kept = policies.load_actor_params(run / "eval_policies" / f"env{best_steps}.npz", env)
   for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(from_npz)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
