@@ -249,9 +249,38 @@ def select_member(actor: Any, member: int | None, run_dir: Path | None = None) -
   return jax.tree.map(lambda x: np.asarray(x)[member], actor)
 
 
+def unflatten_params(arrays: dict) -> dict:
+  """{"a/b/c": array} (a policy file's flax paths) -> the nested params dict."""
+  tree: dict = {}
+  for name, value in arrays.items():
+    node = tree
+    *parents, leaf = name.split("/")
+    for p in parents:
+      node = node.setdefault(p, {})
+    node[leaf] = value
+  return tree
+
+
+# Written by `mjxvine.select` in a run dir: the validation worlds' choice of the best policy.
+SELECTION_JSON = "selection.json"
+SELECTED_POLICY = "selected.npz"
+
+
+def selected_policy(path: str | Path, which: str = "best") -> Path | None:
+  """RUN/selected.npz when `path` is a run dir (or its checkpoints dir) whose best policy
+  was chosen on validation worlds (`mjxvine.select`) and `which` is "best"; else None."""
+  path = Path(path).expanduser()
+  run = path.parent if path.name == "checkpoints" else path
+  chosen = run / SELECTED_POLICY
+  return chosen if which == "best" and (run / SELECTION_JSON).is_file() \
+      and chosen.is_file() else None
+
+
 def restore_actor_params(path: str | Path, which: str = "best",
                          member: int | None = None) -> tuple[Any, Path]:
-  """(actor params, item dir) of the checkpoint that `checkpoint_item(path, which)` picks.
+  """(actor params, item dir) of the checkpoint that `checkpoint_item(path, which)` picks;
+  of a run dir whose best policy was chosen on validation worlds, (its params,
+  RUN/selected.npz) for which="best" (`selected_policy`; member None or 0).
 
   The params are the actor's flax "params" dict of numpy arrays of one member: of a run
   that trained several (`--seeds`, sweeps; saved with a leading members axis), `member`,
@@ -263,6 +292,10 @@ def restore_actor_params(path: str | Path, which: str = "best",
   import jax
   import orbax.checkpoint as ocp
 
+  chosen = selected_policy(path, which)
+  if chosen is not None and member in (None, 0):
+    from mjxvine.deploy import read_policy_file
+    return unflatten_params(read_policy_file(chosen)[0]), chosen
   item = checkpoint_item(path, which)
   ckpt = ocp.PyTreeCheckpointer()
   try:

@@ -271,6 +271,21 @@ class TrainConfig:
                                 "evaluation as RUN/eval_policies/env<steps>.npz (a policy file: "
                                 "under 0.1 MB for the CPU configs' networks, 0.4 MB for the "
                                 "paper's), to compare checkpoint choices afterwards")
+  select_worlds: int = _f(0, 0, 64, doc="choose the best checkpoint on this many "
+                          "validation worlds (test-kind worlds of seeds select_world_seed "
+                          "and up, never a test table's) among the train.select_candidates "
+                          "best fresh-start evaluations, after training (mjxvine.select; "
+                          "writes their policies as train.keep_eval_policies does; 0: the "
+                          "best fresh-start evaluation is the best checkpoint)")
+  select_world_seed: int = _f(100, 100, 2**31 - 1, doc="the first validation world's seed "
+                              "(test tables use seeds below 100)")
+  select_candidates: int = _f(4, 1, 1024, doc="fresh-start evaluations scored on the "
+                              "validation worlds: the best by the weaker direction's "
+                              "success, then the lower MAE")
+  select_runs: int = _f(2, 1, 100, doc="runs per lane-direction of each validation world")
+  select_noise_factors: tuple[float, float] = _f(
+      (8.0, 10.0), 0.0, 100.0, doc="depth-noise factors at which rows 1F and 4F of the "
+      "first validation world are driven too, 3 runs each (as the noise test)")
   video: bool = _f(False, doc="the closing report films the best policy on the test world "
                    "(lanes 1F and 4R): MP4s in RUN/eval/videos/ (needs OpenGL and "
                    "imageio-ffmpeg, `pip install mjxvine[video]`; eval.runs_after_train >= 1)")
@@ -383,6 +398,9 @@ def _check_cross_fields(cfg: Config) -> None:
     raise ConfigError(f"env.physics_dt = {cfg.env.physics_dt}: must divide env.control_dt "
                       f"= {cfg.env.control_dt}")
   parse_sweep(cfg.train.sweep)
+  if cfg.train.select_worlds and (cfg.train.num_seeds > 1 or cfg.train.sweep):
+    raise ConfigError(f"train.select_worlds = {cfg.train.select_worlds}: chooses one "
+                      "member's policy; it needs train.num_seeds = 1 and no train.sweep")
   if cfg.train.video and cfg.eval.runs_after_train < 1:
     raise ConfigError("train.video = true: films the closing test-world runs, which need "
                       "eval.runs_after_train >= 1 (got 0)")

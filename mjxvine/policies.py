@@ -35,18 +35,6 @@ def actor_policy(nets: nw.SACNetworks, actor_params, *, brax: bool = False,
   return policy
 
 
-def _unflatten(arrays: dict) -> dict:
-  """{"a/b/c": array} (a policy file's flax paths) -> nested dict of jax arrays."""
-  tree: dict = {}
-  for name, value in arrays.items():
-    node = tree
-    *parents, leaf = name.split("/")
-    for p in parents:
-      node = node.setdefault(p, {})
-    node[leaf] = jp.asarray(value)
-  return tree
-
-
 def load_actor_params(path: Path, env, which: str = "best", member: int | None = None) -> dict:
   """Actor params from a .npz export or a run directory, checked against `env`'s camera.
 
@@ -64,7 +52,7 @@ def load_actor_params(path: Path, env, which: str = "best", member: int | None =
       got = "x".join(str(v) for v in size) or "unknown"
       raise PolicyError(f"{path}: trained for {got} depth images, the "
                         f"evaluation renders {want[0]}x{want[1]} (set camera.height/width)")
-    return _unflatten(arrays)
+    return jax.tree.map(jp.asarray, checkpoint.unflatten_params(arrays))
   try:
     params, _ = checkpoint.restore_actor_params(path, which, member)
   except (FileNotFoundError, KeyError, ValueError) as e:

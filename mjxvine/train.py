@@ -40,7 +40,7 @@ import numpy as np
 from mjxvine import policies
 from mjxvine import sac as sac_lib
 from mjxvine import starts
-from mjxvine.checkpoint import Checkpoints
+from mjxvine.checkpoint import Checkpoints, restore_actor_params
 from mjxvine.config import (DEFAULT_CONFIG_NAME, PACKAGED_CONFIGS, Config, add_config_args,
                             changed_keys, config_from_args, enable_compile_cache, load_config,
                             replace, resolve_config_path, to_yaml)
@@ -428,7 +428,7 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
         rows[0]["best"] = True
       if member_best is not None:
         member_best.update(chunk_index, steps, rows, ts.learner.policy_params)
-      if cfg.train.keep_eval_policies and primary:
+      if (cfg.train.keep_eval_policies or cfg.train.select_worlds) and primary:
         _export_member(cfg, _local(ts.learner.policy_params), 0 if seeds > 1 else None,
                        run_dir / "eval_policies" / f"env{steps}.npz", chunk_index, steps)
       say(f"evaluated {2 * cfg.train.eval_starts} fresh starts in {time.time() - t0:.0f} s: "
@@ -503,9 +503,14 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
     best = best_scores[0]
     if best is not None:
       last_row.update({f"best_{k}": v for k, v in best.items()})
+    selected = None
+    if vineyard and cfg.train.select_worlds and primary and best is not None:
+      from mjxvine import select as select_lib
+      selected = select_lib.select(cfg, run_dir, say)["selected"]
+      last_row["selected_env_steps"] = selected
     if vineyard and evaluate_at_end:
       _closing_report(cfg, run_dir, sac, ckpt, ts, seeds, best, last_row, say, start_eval,
-                      eval_key, primary)
+                      eval_key, primary, selected)
     return last_row
 
 
@@ -553,13 +558,15 @@ def _summary_line(row: dict, best: dict | None) -> str:
 
 def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seeds: int,
                     best: dict | None, row: dict, say, start_eval, eval_key,
-                    primary: bool = True) -> None:
+                    primary: bool = True, selected: int | None = None) -> None:
   """Prints the best policy's evaluation on fresh starts of the training rows beside the
   drive-straight and random baselines from the same starts, evaluates it on the test world
   (the paper's protocol, `eval.runs_after_train` runs per lane-direction, for
   information) and names the files of the run. Every process enters the restore and the
   baselines (collectives over all devices); process 0 alone runs the test world (on its
-  own device) and prints."""
+  own device) and prints. selected: the env steps of the policy chosen on validation
+  worlds (RUN/selected.npz, `mjxvine.select`), which the test world then drives instead
+  of checkpoints/best."""
   actor = ts.learner.policy_params
   if best is not None:
     restored = ckpt.restore(ts, best=True)
@@ -579,6 +586,10 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
   runs = cfg.eval.runs_after_train
   if not primary:
     return
+  which = "best checkpoint"
+  if selected is not None:
+    actor, _ = restore_actor_params(run_dir)  # RUN/selected.npz
+    which = f"policy selected on validation worlds, {selected} env steps"
   if runs > 0:
     from mjxvine import evaluate as ev
     from mjxvine.worlds import load_test_world
@@ -590,7 +601,7 @@ def _closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seed
         policy=policies.actor_policy(sac.nets, actor, mirror=policies.averaging_mirror(cfg)),
         video=ev.video_after_train(world) if cfg.train.video else ())
     member = ", member 0" if seeds > 1 else ""
-    doc["policy"] = f"{run_dir} (best checkpoint, train.seed {cfg.train.seed}{member})"
+    doc["policy"] = f"{run_dir} ({which}, train.seed {cfg.train.seed}{member})"
     ev.write_results(doc, world, run_dir / "eval")
     row["eval_test_success"] = doc["overall"]["success"]
     row["eval_test_runs"] = doc["overall"]["runs"]

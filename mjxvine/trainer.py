@@ -12,6 +12,7 @@ logs, plots, checkpoints, evaluations, resume) is `mjxvine.train`.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import sys
@@ -25,7 +26,8 @@ import numpy as np
 from mjxvine import networks as nw
 from mjxvine import parallel
 from mjxvine import sac as sac_lib
-from mjxvine.config import Config, depth_input_scale, parse_sweep, replace
+from mjxvine.config import (Config, EvalConfig, TrainConfig, depth_input_scale, parse_sweep,
+                            replace)
 from mjxvine.protocol import PHYSICS, REWARD_PREFIX, SUCCESS, TIMEOUT
 
 
@@ -244,13 +246,19 @@ def compiled(cfg: Config, seeds: int, env):
   return sac, init_fn, host_chunk
 
 
+# train.* fields read only by what runs around the compiled chunks (files, the selection)
+_AFTER_TRAINING = ("keep_eval_policies", "select_worlds", "select_world_seed",
+                   "select_candidates", "select_runs", "select_noise_factors")
+
+
 def compile_key(cfg: Config) -> Config:
   """`cfg` without the fields that do not shape the compiled program."""
   return replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
                              "save_replay": False, "sweep": "", "num_seeds": 1,
                              "max_minutes": 0.0, "eval_every_chunks": 0, "eval_starts": 1,
-                             "video": False},
-                 eval={"runs_after_train": 0})
+                             "video": False,
+                             **{k: getattr(TrainConfig(), k) for k in _AFTER_TRAINING}},
+                 eval=dataclasses.asdict(EvalConfig()))  # the protocol after training
 
 
 def _reward_terms(env_state) -> list[str]:

@@ -4,10 +4,11 @@ that rules for choosing the best checkpoint can be compared without training aga
   python scripts/score_eval_policies.py runs/RUN [--worlds 100,101,102] [--runs 2]
       [--steps 50000,90000]
 
-For each RUN/eval_policies/env<steps>.npz, one batched rollout of the evaluation protocol
-(`mjxvine.evaluate`): every lane-direction of each validation world (test-kind seeds that
-the test tables never use) with `--runs` runs at the config's noise factor, and rows 1F
-and 4F of the first validation world with 3 runs at each `--noise` factor. Besides, the
+For each RUN/eval_policies/env<steps>.npz, one batched rollout of the validation protocol
+that `train.select_worlds` chooses on (`mjxvine.select.score_policy`): every
+lane-direction of each validation world (test-kind seeds that the test tables never use)
+with `--runs` runs at the config's noise factor, and rows 1F and 4F of the first
+validation world with 3 runs at each `--noise` factor. Besides, the
 fresh-start evaluation of the trainer (`mjxvine.starts`) on the training pool at the
 config's noise factor (`--pool-starts` per direction; the trainer's own draws its noise
 per episode from env.train_noise_factor), a candidate yardstick that needs no test world.
@@ -22,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 from pathlib import Path
 
@@ -34,57 +34,19 @@ sys.path.insert(0, str(ROOT))
 
 from mjxvine import evaluate as ev  # noqa: E402
 from mjxvine import networks as nw  # noqa: E402
-from mjxvine import policies, starts  # noqa: E402
+from mjxvine import policies, select, starts  # noqa: E402
 from mjxvine import train as train_lib  # noqa: E402
 from mjxvine.config import load_config, replace  # noqa: E402
 from mjxvine.env import training_env  # noqa: E402
 from mjxvine.worlds import make_world  # noqa: E402
 
-NOISE_LANES = (1, 4)
-NOISE_RUNS = 3
-
-
-def trainer_evals(run: Path) -> dict[int, dict]:
-  """{env_steps: the trainer's eval_* values} from RUN/metrics.jsonl."""
-  out = {}
-  for line in (run / "metrics.jsonl").read_text().splitlines():
-    row = json.loads(line)
-    if "eval_success_forward" in row:
-      out[row["env_steps"]] = {k: row[k] for k in row if k.startswith("eval_")}
-  return out
-
-
 def score(cfg, path: Path, worlds, runs: int, noise_factors, pool_env, pool_eval) -> dict:
-  """One policy's scores: {worlds: {seed: success, episodes, mae_m_rows, ...}, noise:
-  {factor: {"1F": successes, "4F": ...}}, pool_noise1: the fresh-start evaluation}."""
+  """One policy's scores: `select.score_policy` on the validation worlds, and
+  pool_noise1: the fresh-start evaluation at the config's noise factor."""
   tests = [make_world(str(s), cfg.world) for s in worlds]
-  noise0 = cfg.eval.noise_factor
-  cases, tables, noise = [], {}, {}
-  for wi, world in enumerate(tests):
-    first = len(cases)
-    cases += [(wi, lane, d, noise0) for lane in range(1, len(world.lanes) + 1)
-              for d in ("F", "R") for _ in range(runs)]
-    tables[wi] = range(first, len(cases))
-  for k in noise_factors:
-    first = len(cases)
-    cases += [(0, lane, "F", float(k)) for lane in NOISE_LANES for _ in range(NOISE_RUNS)]
-    noise[k] = range(first, len(cases))
-  raw, _ = ev.rollout_cases(cfg, str(path), tests, cases)
-  out = {"worlds": {}, "noise": {}}
-  for wi, world in enumerate(tests):
-    doc = ev.summarize(cfg, world, cases, tables[wi], raw)
-    out["worlds"][str(worlds[wi])] = {
-        "success": int(sum(r["success"] for r in doc["rows"])),
-        "episodes": len(tables[wi]), "mae_m_rows": doc["overall"]["mae_m_rows"],
-        "rows_status": doc["overall"]["rows_status"],
-        "failed": [f"{r['lane']}{r['direction']}" for r in doc["rows"]
-                   if r["success"] < r["runs"]]}
-  for k in noise_factors:
-    doc = ev.summarize(cfg, tests[0], cases, noise[k], raw)
-    out["noise"][str(k)] = {f"{r['lane']}F": int(r["success"]) for r in doc["rows"]}
+  out = select.score_policy(cfg, path, tests, runs, noise_factors)
   pool = pool_eval(policies.load_actor_params(path, pool_env), jax.random.PRNGKey(0))
   out["pool_noise1"] = {k: float(v) for k, v in pool.items()}
-  out["wall_s"] = raw["wall_s"]
   return out
 
 
@@ -101,13 +63,12 @@ def main(argv=None) -> int:
   worlds = [int(s) for s in args.worlds.split(",")]
   noise_factors = [float(s) for s in args.noise.split(",") if s]
   cfg = load_config(args.run / "config.yaml")
-  files = sorted((args.run / "eval_policies").glob("env*.npz"),
-                 key=lambda f: int(re.findall(r"\d+", f.stem)[0]))
+  files = sorted(select.kept_policies(args.run).items())
   out_file = args.run / "eval_policies" / "scores.jsonl"
   only = {int(s) for s in args.steps.split(",") if s}
   done = {json.loads(l)["env_steps"] for l in out_file.read_text().splitlines()} \
       if out_file.is_file() else set()
-  trainer = trainer_evals(args.run)
+  trainer = select.trainer_evaluations(args.run)
 
   # the training pool at the config's noise factor: no per-episode noise draw
   pool_cfg = replace(cfg, env={"train_noise_factor": (0.0, 0.0)})
@@ -117,8 +78,7 @@ def main(argv=None) -> int:
   pool_eval = starts.make_start_eval(
       env, lambda prm, obs, key: nw.act_deterministic(nets, prm, obs, mirror),
       args.pool_starts)
-  for f in files:
-    steps = int(re.findall(r"\d+", f.stem)[0])
+  for steps, f in files:
     evals = trainer.get(steps, {})
     drove = evals.get("eval_success_forward", 0) + evals.get("eval_success_reverse", 0)
     if steps in done or (only and steps not in only) or not drove:
@@ -160,15 +120,18 @@ RULES = {
     "weaker of both, -MAE@1": lambda r: (min(_minmax(_trainer(r))[0],
                                              _minmax(r["pool_noise1"])[0]),
                                          -r["pool_noise1"]["mae_m"]),
+    # mjxvine.select's order, over every scored policy (not its top candidates only)
+    "validation successes, -MAE": select.rank,
 }
 
 
 def val_line(r: dict) -> str:
   w = r["worlds"]
+  noise_runs = select.NOISE_RUNS * len(select.NOISE_LANES)
   maes = [v["mae_m_rows"] for v in w.values() if v["mae_m_rows"] is not None]
   return (" ".join(f"{v['success']}/{v['episodes']}" for v in w.values())
           + f", MAE {np.mean(maes) if maes else float('nan'):.3f}; noise "
-          + " ".join(f"{k}: {sum(v.values())}/{NOISE_RUNS * len(NOISE_LANES)}"
+          + " ".join(f"{k}: {sum(v.values())}/{noise_runs}"
                      for k, v in r["noise"].items()))
 
 

@@ -47,7 +47,7 @@ MARK = re.compile(r"^<!--\s*(skip|no-run|slow):\s*(.+?)\s*-->\s*$")
 FENCE = re.compile(r"^```(\w*)\s*$")
 CLIS = {"train": "mjxvine.train", "evaluate": "mjxvine.evaluate", "export": "mjxvine.export",
         "worlds": "mjxvine.worlds.__main__", "bench": "mjxvine.bench",
-        "latency": "mjxvine.latency"}
+        "latency": "mjxvine.latency", "select": "mjxvine.select"}
 # Tools outside the package that documented commands call: only the repository files they
 # name are checked.
 EXTERNAL = {"tensorboard", "jupyter", "nvidia-smi", "ros2"}

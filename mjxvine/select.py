@@ -1,0 +1,222 @@
+"""The best checkpoint, chosen on validation worlds after training.
+
+  python -m mjxvine.select RUN_DIR            # what the trainer does at its end
+  python -m mjxvine.select RUN_DIR --set train.select_candidates=6
+
+The fresh-start evaluations during training (`mjxvine.starts`, 2 x train.eval_starts
+starts on the training rows) are a noisy yardstick: two checkpoints that score alike there
+can differ from 0 to 100 % on test-kind worlds. With `train.select_worlds` > 0 the trainer
+keeps every evaluated policy (RUN/eval_policies/env<steps>.npz) and, after training, drives
+the `train.select_candidates` best of them by the fresh-start rule (`train._score`: the
+weaker direction's success, then the lower MAE) through a validation protocol:
+
+- every lane-direction of `train.select_worlds` validation worlds, test-kind worlds of seeds
+  `train.select_world_seed` (100 or more: test tables use seeds below 100) and up,
+  `train.select_runs` runs each, at `eval.noise_factor`;
+- rows 1F and 4F of the first validation world at each of `train.select_noise_factors`,
+  3 runs each (the noise test's rows and runs).
+
+One batched rollout per candidate (`evaluate.rollout_cases`, rollout seed 0: the same
+cases and keys for every candidate). The candidate with the most successes over all of
+it is chosen, ties broken by the lower MAE (the mean over the validation worlds of each
+world's mean of rows). RUN/selection.json records every candidate's scores and the choice,
+and is written after each candidate, so an interrupted selection resumes; RUN/selected.npz
+is the chosen policy, which a run dir's "best" policy means from then on
+(`checkpoint.selected_policy`: `evaluate --policy RUN`, `export --checkpoint RUN`).
+No test world is driven.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from mjxvine.checkpoint import SELECTED_POLICY, SELECTION_JSON, _write_atomic
+from mjxvine.config import Config, ConfigError, add_config_args, load_config
+
+NOISE_LANES = (1, 4)  # the noise test's rows: a straight and a curved lane, forward
+NOISE_RUNS = 3
+
+
+def policy_file(run_dir: Path, env_steps: int) -> Path:
+  """RUN/eval_policies/env<steps>.npz: the policy evaluated at `env_steps`."""
+  return Path(run_dir) / "eval_policies" / f"env{env_steps}.npz"
+
+
+def kept_policies(run_dir: Path) -> dict[int, Path]:
+  """{env steps: policy file} of RUN/eval_policies/."""
+  files = Path(run_dir).glob("eval_policies/env*.npz")
+  return {int(re.fullmatch(r"env(\d+)", f.stem).group(1)): f for f in files
+          if re.fullmatch(r"env(\d+)", f.stem)}
+
+
+def trainer_evaluations(run_dir: Path) -> dict[int, dict]:
+  """{env steps: the eval_* values} of member 0's fresh-start evaluations, from
+  RUN/metrics.jsonl (the last row of a step wins: a resumed run rewrites its tail)."""
+  out = {}
+  path = Path(run_dir) / "metrics.jsonl"
+  for line in path.read_text().splitlines() if path.is_file() else ():
+    row = json.loads(line)
+    if row.get("member", 0) == 0 and "eval_success_forward" in row:
+      out[int(row["env_steps"])] = {k: row[k] for k in row if k.startswith("eval_")}
+  return out
+
+
+def candidates(evaluations: dict[int, dict], kept: set[int], k: int) -> list[int]:
+  """The env steps of the `k` best evaluations by the fresh-start rule (`train._score`)
+  among those whose policy was kept, best first (the earlier of equal scores first, as the
+  trainer keeps the first of equals as checkpoints/best)."""
+  from mjxvine.train import _score
+  steps = sorted(s for s in evaluations if s in kept)
+  return sorted(steps, key=lambda s: _score(evaluations[s]), reverse=True)[:k]
+
+
+def validation_worlds(cfg: Config) -> list:
+  """The `train.select_worlds` validation worlds (test-kind, seeds select_world_seed...)."""
+  from mjxvine.worlds import make_world
+  first = cfg.train.select_world_seed
+  return [make_world(str(first + i), cfg.world) for i in range(cfg.train.select_worlds)]
+
+
+def validation_cases(worlds: list, runs: int, noise0: float, noise_factors) -> tuple:
+  """(cases, tables, noise): the `evaluate.rollout_cases` cases (world index, lane,
+  direction, noise factor) of the validation protocol; tables[i] the case indices of world
+  i's table, noise[k] those of rows 1F and 4F of world 0 at noise factor k."""
+  cases, tables, noise = [], [], {}
+  for wi, world in enumerate(worlds):
+    first = len(cases)
+    cases += [(wi, lane, d, noise0) for lane in range(1, len(world.lanes) + 1)
+              for d in ("F", "R") for _ in range(runs)]
+    tables.append(range(first, len(cases)))
+  for k in noise_factors:
+    first = len(cases)
+    cases += [(0, lane, "F", float(k)) for lane in NOISE_LANES for _ in range(NOISE_RUNS)]
+    noise[float(k)] = range(first, len(cases))
+  return cases, tables, noise
+
+
+def score_policy(cfg: Config, path: Path, worlds: list, runs: int,
+                 noise_factors=()) -> dict:
+  """One policy file's validation scores: {"worlds": {seed: {success, episodes,
+  mae_m_rows, rows_status, failed}}, "noise": {factor: {"1F": successes, "4F": ...}},
+  "success", "episodes" (over all of it), "mae_m" (the mean of the worlds' mean-of-rows
+  MAE; None when no world has one), "wall_s"}."""
+  from mjxvine import evaluate as ev
+  cases, tables, noise = validation_cases(worlds, runs, cfg.eval.noise_factor, noise_factors)
+  raw, _ = ev.rollout_cases(cfg, str(path), worlds, cases)
+  out = {"worlds": {}, "noise": {}}
+  for world, idx in zip(worlds, tables):
+    doc = ev.summarize(cfg, world, cases, idx, raw)
+    out["worlds"][str(world.seed)] = {
+        "success": int(sum(r["success"] for r in doc["rows"])), "episodes": len(idx),
+        "mae_m_rows": doc["overall"]["mae_m_rows"],
+        "rows_status": doc["overall"]["rows_status"],
+        "failed": [f"{r['lane']}{r['direction']}" for r in doc["rows"]
+                   if r["success"] < r["runs"]]}
+  for k, idx in noise.items():
+    doc = ev.summarize(cfg, worlds[0], cases, idx, raw)
+    out["noise"][str(k)] = {f"{r['lane']}F": int(r["success"]) for r in doc["rows"]}
+  maes = [w["mae_m_rows"] for w in out["worlds"].values() if w["mae_m_rows"] is not None]
+  out["success"] = (sum(w["success"] for w in out["worlds"].values())
+                    + sum(sum(v.values()) for v in out["noise"].values()))
+  out["episodes"] = len(cases)
+  out["mae_m"] = float(np.mean(maes)) if maes else None
+  out["wall_s"] = raw["wall_s"]
+  return out
+
+
+def rank(scores: dict) -> tuple:
+  """Order of validated candidates (higher is better): the successes, then the lower MAE."""
+  mae = scores["mae_m"]
+  return scores["success"], -(mae if mae is not None else float("inf"))
+
+
+def protocol(cfg: Config) -> dict:
+  """What the validation scores depend on besides the policy: a selection.json with other
+  values is scored again."""
+  t = cfg.train
+  return {"worlds": [t.select_world_seed + i for i in range(t.select_worlds)],
+          "runs": t.select_runs, "noise_factor": cfg.eval.noise_factor,
+          "noise_factors": list(t.select_noise_factors), "noise_lanes": list(NOISE_LANES),
+          "noise_runs": NOISE_RUNS, "max_steps": cfg.eval.max_steps, "rollout_seed": 0}
+
+
+def select(cfg: Config, run_dir: Path, say=print) -> dict:
+  """Chooses the run's best policy on the validation worlds (the module's docstring);
+  writes RUN/selection.json and RUN/selected.npz and returns the selection record:
+  {"protocol", "candidates": [{"env_steps", "trainer": eval_* values, "validation":
+  `score_policy`}, best first by the fresh-start rule], "selected": env steps}."""
+  run_dir = Path(run_dir)
+  if cfg.train.select_worlds < 1:
+    raise ValueError("train.select_worlds = 0: no validation worlds to choose on")
+  evaluations, kept = trainer_evaluations(run_dir), kept_policies(run_dir)
+  chosen = candidates(evaluations, set(kept), cfg.train.select_candidates)
+  if not chosen:
+    raise FileNotFoundError(f"{run_dir}: no evaluated policy to choose from (RUN/"
+                            "eval_policies/env<steps>.npz beside the evaluations of "
+                            "metrics.jsonl)")
+  record_path = run_dir / SELECTION_JSON
+  old = json.loads(record_path.read_text()) if record_path.is_file() else {}
+  done = ({c["env_steps"]: c["validation"] for c in old.get("candidates", [])}
+          if old.get("protocol") == protocol(cfg) else {})
+  (run_dir / SELECTED_POLICY).unlink(missing_ok=True)  # an earlier choice, until this one
+  worlds = validation_worlds(cfg)
+  record = {"protocol": protocol(cfg), "candidates": [], "selected": None}
+  say(f"choosing the best of {len(chosen)} evaluated policies ({', '.join(map(str, chosen))} "
+      f"env steps) on validation worlds {record['protocol']['worlds']}...")
+  for steps in chosen:
+    scores = done.get(steps) or score_policy(cfg, kept[steps], worlds, cfg.train.select_runs,
+                                             cfg.train.select_noise_factors)
+    record["candidates"].append({"env_steps": steps, "trainer": evaluations[steps],
+                                 "validation": scores})
+    _write_atomic(record_path, json.dumps(record, indent=1))
+    say(f"  {steps:>8} env steps: {summary(scores)}")
+  best = max(record["candidates"], key=lambda c: rank(c["validation"]))  # first of equals
+  record["selected"] = best["env_steps"]
+  shutil.copyfile(kept[best["env_steps"]], run_dir / SELECTED_POLICY)
+  _write_atomic(record_path, json.dumps(record, indent=1))
+  say(f"selected the policy of {best['env_steps']} env steps: {run_dir / SELECTED_POLICY}")
+  return record
+
+
+def summary(scores: dict) -> str:
+  """One line: successes per validation world and at each noise factor, and the MAE."""
+  worlds = ", ".join(f"world {s} {w['success']}/{w['episodes']}"
+                     for s, w in scores["worlds"].items())
+  noise = ", ".join(f"noise {k} {sum(v.values())}/{NOISE_RUNS * len(NOISE_LANES)}"
+                    for k, v in scores["noise"].items())
+  mae = "-" if scores["mae_m"] is None else f"{scores['mae_m']:.3f} m"
+  return f"{scores['success']}/{scores['episodes']} ({worlds}; {noise}), MAE {mae}"
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(prog="python -m mjxvine.select", description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("run_dir", type=Path)
+  add_config_args(p)
+  args = p.parse_args(argv)
+  try:
+    if not (args.run_dir / "config.yaml").is_file():
+      raise FileNotFoundError(f"{args.run_dir}: no config.yaml (not a run directory)")
+    cfg = load_config(args.config or str(args.run_dir / "config.yaml"), args.overrides)
+    if cfg.train.select_worlds < 1:
+      raise ValueError(f"{args.run_dir}: train.select_worlds = 0 in its config: give "
+                       "--set train.select_worlds=N (N validation worlds)")
+    select(cfg, args.run_dir)
+  except ConfigError as e:
+    print(f"config error: {e}", file=sys.stderr)
+    return 2
+  except (FileNotFoundError, ValueError) as e:
+    print(f"select error: {e}", file=sys.stderr)
+    return 2
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,107 @@
+"""The best checkpoint chosen on validation worlds (`mjxvine.select`): a tiny run trains
+with train.select_worlds, and the trainer scores its best evaluated policies on a
+validation world, picks the one with the most successes (then the lower MAE), writes the
+record and RUN/selected.npz, which a run dir's best policy then means; an interrupted
+selection resumes from its record; bad requests fail in one line."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from test_train import EVAL, _cfg
+
+from mjxvine import select
+from mjxvine import train as train_mod
+from mjxvine.checkpoint import restore_actor_params
+from mjxvine.config import ConfigError, load_config
+from mjxvine.deploy import read_policy_file
+
+# one validation world, one run per lane-direction, short episodes; the trainer's program
+# is test_train.py's (these keys do not shape it)
+SELECT = ("train.select_worlds=1", "train.select_runs=1", "train.select_candidates=2",
+          "eval.max_steps=12")
+
+
+@pytest.fixture(scope="module")
+def selected_run(tmp_path_factory):
+  run = tmp_path_factory.mktemp("selected")
+  row = train_mod.train(_cfg(80, *EVAL, *SELECT), run, quiet=True, evaluate_at_end=False)
+  return run, row
+
+
+def test_the_trainer_chooses_on_the_validation_world(selected_run):
+  run, row = selected_run
+  record = json.loads((run / "selection.json").read_text())
+  rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+  evals = {r["env_steps"]: r for r in rows if "eval_success_forward" in r}
+  assert sorted(evals) == [40, 80]
+  # the candidates: both evaluations, best first by the fresh-start rule (earlier of equals)
+  order = sorted(evals, key=lambda s: train_mod._score(evals[s]), reverse=True)
+  assert [c["env_steps"] for c in record["candidates"]] == order
+  assert record["protocol"]["worlds"] == [100]
+  lanes = len(select.validation_worlds(load_config(run / "config.yaml"))[0].lanes)
+  for c in record["candidates"]:
+    v = c["validation"]
+    # every lane-direction once, and rows 1F and 4F three times at noise 8 and at 10
+    assert v["episodes"] == 2 * lanes + 2 * 2 * 3
+    assert list(v["worlds"]) == ["100"] and v["worlds"]["100"]["episodes"] == 2 * lanes
+    assert v["success"] == v["worlds"]["100"]["success"] + sum(
+        sum(n.values()) for n in v["noise"].values())
+    assert c["trainer"]["eval_mae_m"] == pytest.approx(evals[c["env_steps"]]["eval_mae_m"])
+  best = max(record["candidates"], key=lambda c: select.rank(c["validation"]))
+  assert record["selected"] == best["env_steps"] == row["selected_env_steps"]
+  kept = run / "eval_policies" / f"env{record['selected']}.npz"
+  assert (run / "selected.npz").read_bytes() == kept.read_bytes()
+
+
+def test_a_run_dir_means_its_selected_policy(selected_run):
+  run, _ = selected_run
+  params, path = restore_actor_params(run)
+  assert path == run / "selected.npz"
+  arrays, _ = read_policy_file(run / "selected.npz")
+  np.testing.assert_array_equal(params["mean"]["kernel"], arrays["mean/kernel"])
+  # "last" and the checkpoints themselves are still the orbax checkpoints
+  _, item = restore_actor_params(run, "last")
+  assert "checkpoints" in item.parts
+
+
+def test_rank_orders_successes_then_mae():
+  a = {"success": 10, "mae_m": 0.05}
+  assert select.rank(a) > select.rank({"success": 9, "mae_m": 0.01})
+  assert select.rank(a) > select.rank({"success": 10, "mae_m": 0.06})
+  assert select.rank({"success": 0, "mae_m": None}) < select.rank({"success": 0, "mae_m": 1.0})
+
+
+def test_a_selection_resumes_from_its_record(selected_run, tmp_path, monkeypatch, capsys):
+  run, _ = selected_run
+  copy = tmp_path / "copy"
+  shutil.copytree(run, copy)
+  (copy / "selected.npz").unlink()
+  record = json.loads((copy / "selection.json").read_text())
+  record["selected"] = None
+  (copy / "selection.json").write_text(json.dumps(record))
+  # every candidate is in the record: nothing is driven again
+  monkeypatch.setattr(select, "score_policy", lambda *a, **k: pytest.fail("scored again"))
+  assert select.main([str(copy)]) == 0
+  again = json.loads((copy / "selection.json").read_text())
+  assert again["selected"] == json.loads((run / "selection.json").read_text())["selected"]
+  assert (copy / "selected.npz").read_bytes() == (run / "selected.npz").read_bytes()
+  assert "selected the policy of" in capsys.readouterr().out
+
+
+def test_bad_requests_fail_in_one_line(selected_run, tmp_path, capsys):
+  run, _ = selected_run
+  assert select.main([str(tmp_path)]) == 2
+  assert "no config.yaml" in capsys.readouterr().err
+  assert select.main([str(run), "--set", "train.select_worlds=0"]) == 2
+  assert "train.select_worlds = 0" in capsys.readouterr().err
+  empty = tmp_path / "empty"
+  empty.mkdir()
+  shutil.copy(run / "config.yaml", empty / "config.yaml")
+  assert select.main([str(empty)]) == 2
+  assert "no evaluated policy" in capsys.readouterr().err
+  for bad, key in ((["train.select_world_seed=3"], "train.select_world_seed"),
+                   (["train.select_worlds=2", "train.num_seeds=2"], "train.select_worlds")):
+    with pytest.raises(ConfigError, match=key):
+      load_config("experiments/smoke.yaml", bad)
