@@ -51,9 +51,9 @@ def policy_file(run_dir: Path, env_steps: int) -> Path:
 
 def kept_policies(run_dir: Path) -> dict[int, Path]:
   """{env steps: policy file} of RUN/eval_policies/."""
-  files = Path(run_dir).glob("eval_policies/env*.npz")
-  return {int(re.fullmatch(r"env(\d+)", f.stem).group(1)): f for f in files
-          if re.fullmatch(r"env(\d+)", f.stem)}
+  names = ((re.fullmatch(r"env(\d+)", f.stem), f)
+           for f in Path(run_dir).glob("eval_policies/env*.npz"))
+  return {int(m.group(1)): f for m, f in names if m}
 
 
 def trainer_evaluations(run_dir: Path) -> dict[int, dict]:
@@ -154,7 +154,8 @@ def select(cfg: Config, run_dir: Path, say=print) -> dict:
   `score_policy`}, best first by the fresh-start rule], "selected": env steps}."""
   run_dir = Path(run_dir)
   if cfg.train.select_worlds < 1:
-    raise ValueError("train.select_worlds = 0: no validation worlds to choose on")
+    raise ValueError(f"{run_dir}: train.select_worlds = 0 in its config: give --set "
+                     "train.select_worlds=N (N validation worlds)")
   evaluations, kept = trainer_evaluations(run_dir), kept_policies(run_dir)
   chosen = candidates(evaluations, set(kept), cfg.train.select_candidates)
   if not chosen:
@@ -163,11 +164,11 @@ def select(cfg: Config, run_dir: Path, say=print) -> dict:
                             "metrics.jsonl)")
   record_path = run_dir / SELECTION_JSON
   old = json.loads(record_path.read_text()) if record_path.is_file() else {}
+  record = {"protocol": protocol(cfg), "candidates": [], "selected": None}
   done = ({c["env_steps"]: c["validation"] for c in old.get("candidates", [])}
-          if old.get("protocol") == protocol(cfg) else {})
+          if old.get("protocol") == record["protocol"] else {})
   (run_dir / SELECTED_POLICY).unlink(missing_ok=True)  # an earlier choice, until this one
   worlds = validation_worlds(cfg)
-  record = {"protocol": protocol(cfg), "candidates": [], "selected": None}
   say(f"choosing the best of {len(chosen)} evaluated policies ({', '.join(map(str, chosen))} "
       f"env steps) on validation worlds {record['protocol']['worlds']}...")
   for steps in chosen:
@@ -205,9 +206,6 @@ def main(argv=None) -> int:
     if not (args.run_dir / "config.yaml").is_file():
       raise FileNotFoundError(f"{args.run_dir}: no config.yaml (not a run directory)")
     cfg = load_config(args.config or str(args.run_dir / "config.yaml"), args.overrides)
-    if cfg.train.select_worlds < 1:
-      raise ValueError(f"{args.run_dir}: train.select_worlds = 0 in its config: give "
-                       "--set train.select_worlds=N (N validation worlds)")
     select(cfg, args.run_dir)
   except ConfigError as e:
     print(f"config error: {e}", file=sys.stderr)

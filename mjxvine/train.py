@@ -39,6 +39,7 @@ import numpy as np
 
 from mjxvine import policies
 from mjxvine import sac as sac_lib
+from mjxvine import select as select_lib
 from mjxvine import starts
 from mjxvine.checkpoint import Checkpoints, restore_actor_params
 from mjxvine.config import (DEFAULT_CONFIG_NAME, PACKAGED_CONFIGS, Config, add_config_args,
@@ -430,7 +431,7 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
         member_best.update(chunk_index, steps, rows, ts.learner.policy_params)
       if (cfg.train.keep_eval_policies or cfg.train.select_worlds) and primary:
         _export_member(cfg, _local(ts.learner.policy_params), 0 if seeds > 1 else None,
-                       run_dir / "eval_policies" / f"env{steps}.npz", chunk_index, steps)
+                       select_lib.policy_file(run_dir, steps), chunk_index, steps)
       say(f"evaluated {2 * cfg.train.eval_starts} fresh starts in {time.time() - t0:.0f} s: "
           f"{_eval_line(rows[0])}" + (" (new best)" if rows[0].get("best") else ""))
       return rows
@@ -505,7 +506,6 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
       last_row.update({f"best_{k}": v for k, v in best.items()})
     selected = None
     if vineyard and cfg.train.select_worlds and primary and best is not None:
-      from mjxvine import select as select_lib
       selected = select_lib.select(cfg, run_dir, say)["selected"]
       last_row["selected_env_steps"] = selected
     if vineyard and evaluate_at_end:
