@@ -408,9 +408,9 @@ def _update_args(p: argparse.ArgumentParser) -> None:
                  help="comma-separated SAC batch sizes")
   p.add_argument("--grad-steps", type=_positive_int, default=None,
                  help="gradient steps per timed call (default sac.grad_steps_per_iter)")
-  p.add_argument("--conv-impl", default=None, choices=("xla", "dot", "shift"),
+  p.add_argument("--conv-impl", default=None, choices=("xla", "dot", "shift", "native"),
                  help="the conv tower's convolutions (mjxvine.networks.CONV_IMPLS; "
-                      "default: the trainer's, mjxvine.sac.learner_conv_impl())")
+                      "default: the trainer's, sac.conv_impl)")
   p.add_argument("--compare", action="store_true",
                  help="also time the program compiled with XLA's default options (on a "
                       "CPU: with YNNPACK's convolutions), interleaved")
@@ -428,20 +428,25 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
   seconds per call), the machine's matmul GFLOP/s (`matmul_gflops`, timed right after)
   and their ratio: the fraction of this machine's matrix-multiply rate the update runs
   at, steadier than gradient steps/s on a loaded machine. The program is compiled with
-  `sac.learner_compiler_options()`, as the trainer compiles it ("options" column)."""
+  `sac.learner_compiler_options()`, as the trainer compiles it ("options" column). With
+  `--conv-impl native` the flops are those of the same step with XLA's convolutions
+  (XLA's cost analysis does not count an FFI call's)."""
   from mjxvine import networks as nw  # pylint: disable=import-outside-toplevel
   from mjxvine import sac as sac_lib  # pylint: disable=import-outside-toplevel
+  from mjxvine.env import VineyardEnv  # pylint: disable=import-outside-toplevel
   from mjxvine.trainer import scan_chunks  # pylint: disable=import-outside-toplevel
   rows = []
   g = args.grad_steps or cfg.sac.grad_steps_per_iter
   host = not scan_chunks(cfg)
   tuned = sac_lib.learner_compiler_options()
   variants = [("learner", tuned)] + ([("xla default", None)] if args.compare and tuned else [])
-  conv_impl = args.conv_impl or sac_lib.learner_conv_impl()
+  conv_impl = args.conv_impl or sac_lib.learner_conv_impl(cfg.sac.conv_impl)
+  # the vineyard's mirror image, for configs with sac.mirror_augment / mirror_average
+  mirror = (VineyardEnv.mirror_obs, VineyardEnv.mirror_action)
   for b in (int(x) for x in args.batch_sizes.split(",")):
     c = config_lib.replace(cfg, sac={"batch_size": b, "grad_steps_per_iter": g})
     nets = nw.make_networks_from_config(c, conv_impl=conv_impl)
-    sac = sac_lib.make_sac(nets, c.sac)
+    sac = sac_lib.make_sac(nets, c.sac, mirror=mirror)
     h, w = c.camera.height, c.camera.width
     n = 16
     obs = {"depth": jp.ones((n, h, w, 1)), "state": jp.zeros((n, 3))}
@@ -449,9 +454,18 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
                                  jp.dtype(c.sac.replay_depth_dtype))
     buffer = buffer.replace(rows_written=jp.int32(buffer.num_rows))  # full (zeros)
     learner = sac.init(jax.random.PRNGKey(0), obs)
+    step = sac.update_from if host else sac.update_many
+    if conv_impl == "native":  # XLA does not count an FFI call's work: count XLA's convs'
+      xla_sac = sac_lib.make_sac(nw.make_networks_from_config(c, conv_impl="xla"), c.sac,
+                                 mirror=mirror)
+      xla_step = xla_sac.update_from if host else xla_sac.update_many
+      xla_cost = cost_analysis(jax.jit(xla_step, compiler_options=tuned).lower(
+          learner, buffer, jax.random.PRNGKey(1)).compile())
     for name, options in variants:
-      t = time_call(jax.jit(sac.update_from if host else sac.update_many,
-                            compiler_options=options), learner, buffer, jax.random.PRNGKey(1))
+      t = time_call(jax.jit(step, compiler_options=options), learner, buffer,
+                    jax.random.PRNGKey(1))
+      if conv_impl == "native":
+        t["flops"] = xla_cost["flops"]
       if host:  # G calls of one step: the figures of one call, times G
         t = {k: (v * g if k in ("call_s", "flops", "bytes_accessed") and v is not None
                  else v) for k, v in t.items()}

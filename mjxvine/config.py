@@ -236,6 +236,11 @@ class SACConfig:
                             "left-right, with no steering bias, at twice the actor's cost; "
                             "used by the evaluations, the best-checkpoint choice and the "
                             "exported policy (exploration keeps the stochastic actor)")
+  conv_impl: str = _f("auto", choices=("auto", "xla", "shift", "native"),
+                      doc="how the learner computes the conv tower (the same parameters "
+                      "and numbers to float32 rounding; evaluation and export use XLA's): "
+                      "auto = shift on the CPU, xla elsewhere; native = shift plus the "
+                      "other convs as the hand-written CPU kernel (mjxvine.native_conv)")
   reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
                                     "features of obs from the critic loss and the critics "
                                     "as they were before this step's update (as brax's SAC "

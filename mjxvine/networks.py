@@ -94,7 +94,10 @@ def pad_for_tower(x: jax.Array) -> jax.Array:
 # (docs/results/cpu-update-speed.md). The trainer uses it on the CPU
 # (`sac.learner_conv_impl`); the default of these functions is "xla".
 
-CONV_IMPLS = ("xla", "dot", "shift")
+# `conv_impl="native"` is "shift" plus the other convs as a hand-written CPU kernel
+# (`mjxvine.native_conv`, an XLA FFI call; 8 or 16 channels), where it is built.
+
+CONV_IMPLS = ("xla", "dot", "shift", "native")
 
 
 def _conv3x3_taps(x: jax.Array, stride: int) -> list[jax.Array]:
@@ -219,8 +222,25 @@ def _shift_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=
                                       precision=precision, **kw)
 
 
+def _native_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None,
+                                 rhs_dilation=None, dimension_numbers=None,
+                                 feature_group_count=1, precision=None, **kw):
+  """As `_shift_conv_general_dilated`, and the tower's other convs, where
+  `native_conv.supports` their channels, as `native_conv.conv3x3`."""
+  from mjxvine import native_conv
+  if (rhs.shape[2] > 1 and lhs.dtype == jnp.float32
+      and _is_tower_conv(rhs, window_strides, padding, lhs_dilation, rhs_dilation,
+                         feature_group_count)
+      and native_conv.supports(rhs.shape[2], rhs.shape[3], int(window_strides[0]))):
+    return native_conv.conv3x3(lhs, rhs, int(window_strides[0]))
+  return _shift_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation,
+                                     rhs_dilation, dimension_numbers, feature_group_count,
+                                     precision, **kw)
+
+
 # what `nn.Conv` calls instead of `lax.conv_general_dilated`, per `conv_impl` ("xla": none)
-_CONV_HOOKS = {"dot": _dot_conv_general_dilated, "shift": _shift_conv_general_dilated}
+_CONV_HOOKS = {"dot": _dot_conv_general_dilated, "shift": _shift_conv_general_dilated,
+               "native": _native_conv_general_dilated}
 
 
 def max_pool_2x2(x: jax.Array) -> jax.Array:
@@ -245,8 +265,9 @@ class ConvTower(nn.Module):
   features: int = 32
   depth_scale: float = 1.0  # the input is multiplied by this (e.g. 1 / max_depth)
   dtype: Any = jnp.float32  # computation dtype of the convs
-  conv_impl: str = "xla"  # "xla" (lax.conv_general_dilated), "dot" (im2col and a dot) or
-  # "shift" (the first conv as `conv3x3_shift`, the others XLA's)
+  conv_impl: str = "xla"  # "xla" (lax.conv_general_dilated), "dot" (im2col and a dot),
+  # "shift" (the first conv as `conv3x3_shift`, the others XLA's) or "native" ("shift"
+  # and the others as `native_conv.conv3x3`)
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
@@ -258,6 +279,10 @@ class ConvTower(nn.Module):
     x = pad_for_tower(x)
     if self.conv_impl not in CONV_IMPLS:
       raise ValueError(f"conv_impl {self.conv_impl!r}: expected one of {CONV_IMPLS}")
+    if self.conv_impl == "native":
+      from mjxvine import native_conv
+      if not native_conv.available():
+        raise RuntimeError(f"conv_impl 'native': {native_conv.unavailable_reason()}")
     dot = self.conv_impl == "dot"
     hook = _CONV_HOOKS.get(self.conv_impl)
     conv = {"conv_general_dilated": hook} if hook else {}

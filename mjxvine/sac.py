@@ -183,13 +183,16 @@ def learner_compiler_options() -> dict | None:
   return options
 
 
-def learner_conv_impl() -> str:
-  """How the trainer's networks compute the conv tower (`networks.CONV_IMPLS`): on the
-  CPU backend "shift" (the first conv, one input channel, as a sum of strided slices:
-  1.2x the env steps/s of a CPU training run while learning, and the same numbers to
-  float32 rounding: docs/results/cpu-update-speed.md); elsewhere "xla", so that
+def learner_conv_impl(choice: str = "auto") -> str:
+  """How the trainer's networks compute the conv tower (`networks.CONV_IMPLS`):
+  `sac.conv_impl` where it names one; else ("auto") on the CPU backend "shift" (the first
+  conv, one input channel, as a sum of strided slices: 1.2x the env steps/s of a CPU
+  training run while learning, and the same numbers to float32 rounding:
+  docs/results/cpu-update-speed.md); elsewhere "xla", so that
   accelerator programs and their cost analysis are unchanged. The parameters are the
   same either way; evaluation and export keep XLA's convolution."""
+  if choice != "auto":
+    return choice
   return "shift" if jax.default_backend() == "cpu" else "xla"
 
 

@@ -85,7 +85,7 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
                           depth_scale=depth_input_scale(cfg),
                           log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
                           compute_dtype=cfg.sac.compute_dtype,
-                          conv_impl=sac_lib.learner_conv_impl())
+                          conv_impl=sac_lib.learner_conv_impl(cfg.sac.conv_impl))
   mirror = ((env.mirror_obs, env.mirror_action) if hasattr(env, "mirror_obs") else None)
   sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch, mirror=mirror)
   warmup = cfg.sac.warmup_steps

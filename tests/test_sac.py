@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mjxvine import depth
+from mjxvine import native_conv
 from mjxvine import networks as nw
 from mjxvine import sac
 from mjxvine.config import SACConfig
@@ -546,12 +547,15 @@ def test_mirror_half_flips_whole_transitions():
       sac.make_sac(nets, SACConfig(**{key: True}))
 
 
-@pytest.mark.parametrize("conv_impl", ["xla", "shift"])
-def test_cpu_learner_gives_the_same_losses_and_gradients(conv_impl):
+@pytest.mark.parametrize("conv_impl, features", [
+    ("xla", 4), ("shift", 4),
+    pytest.param("native", 8, marks=pytest.mark.skipif(
+        not native_conv.available(), reason="the native conv is not built here"))])
+def test_cpu_learner_gives_the_same_losses_and_gradients(conv_impl, features):
   """A fixed depth batch: the critic and actor losses and their gradients compiled with
-  `learner_compiler_options()` (the trainer's) and with the tower's first conv as
-  `conv_impl` are those of XLA's convolution compiled with XLA's default options, to
-  float32 rounding (the tower alone: tests/test_networks.py)."""
+  `learner_compiler_options()` (the trainer's) and with the tower computed as `conv_impl`
+  are those of XLA's convolution compiled with XLA's default options, to float32 rounding
+  (the tower alone: tests/test_networks.py, tests/test_native_conv.py)."""
   size, b = 33, 4
   keys = jax.random.split(jax.random.PRNGKey(0), 4)
   obs = lambda k: {"depth": jax.random.uniform(k, (b, size, size, 1), maxval=5.0),
@@ -560,7 +564,7 @@ def test_cpu_learner_gives_the_same_losses_and_gradients(conv_impl):
                          jnp.zeros(b), jnp.zeros(b), obs(keys[2]))
 
   def losses(options, impl):
-    nets = nw.make_networks(LOW, HIGH, hidden=8, conv_features=4, depth_scale=0.2,
+    nets = nw.make_networks(LOW, HIGH, hidden=8, conv_features=features, depth_scale=0.2,
                             conv_impl=impl)
     actor, critic = nw.init_params(nets, keys[3], batch.obs)
     target = jax.tree.map(lambda x: 0.9 * x, critic)
