@@ -12,8 +12,8 @@ gradients). Equal to `lax.conv_general_dilated` to float32 rounding
 (tests/test_native_conv.py).
 
 The library is compiled on first use with the system's C++ compiler (`$CXX` or `g++`)
-into `$MJXVINE_CACHE` (default `~/.cache/mjxvine`), one file per source, flags and
-jaxlib version, and registered with `jax.ffi`. `available()` is False, with the reason
+into `$MJXVINE_CACHE` (default `~/.cache/mjxvine`), one file per source, flags, jax
+version and compiler, and registered with `jax.ffi`. `available()` is False, with the reason
 in `unavailable_reason()`, when the machine is not x86-64 Linux with AVX2 and FMA, when
 no compiler builds it, or when `MJXVINE_NATIVE_CONV=0`; `conv_impl="native"`
 (`sac.conv_impl: native`) then fails with that reason. The default, `sac.conv_impl: auto`,
@@ -36,6 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjxvine.networks import lax_conv3x3
+
 SOURCE = Path(__file__).parent / "native" / "tower_conv.cc"
 FLAGS = ("-O3", "-mavx2", "-mfma", "-fopenmp", "-shared", "-fPIC", "-std=c++17", "-w")
 FORWARD, KERNEL_GRAD = "mjxvine_tower_conv", "mjxvine_tower_conv_kernel_grad"
@@ -54,7 +56,8 @@ def _cpu_flags() -> set[str]:
 
 
 def _build() -> Path:
-  """Compile the library (once per source, flags and jaxlib version) -> its path."""
+  """Compile the library (once per source, flags, jax version and compiler) -> its
+  path."""
   cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++")
   if not cxx:
     raise RuntimeError("no C++ compiler (set $CXX or install g++)")
@@ -129,12 +132,7 @@ def conv3x3(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     raise RuntimeError(f"the native conv is not available: {unavailable_reason()}")
   if kernel.shape[-1] == FAST_FORWARD_FEATURES:
     return _forward(x, kernel, stride)
-  return _xla_conv(x, kernel, stride)
-
-
-def _xla_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-  return jax.lax.conv_general_dilated(x, kernel, (stride, stride), "VALID",
-                                      dimension_numbers=("NHWC", "HWIO", "NHWC"))
+  return lax_conv3x3(x, kernel, stride)
 
 
 def _conv3x3_fwd(x, kernel, stride):
@@ -151,7 +149,7 @@ def _conv3x3_bwd(stride, res, dy):
     dyp = jnp.pad(dy, ((0, 0), (2, 2), (2, 2), (0, 0)))
     dx = _forward(dyp, jnp.flip(kernel, (0, 1)).transpose(0, 1, 3, 2), 1)
   else:
-    dx = jax.vjp(lambda a: _xla_conv(a, kernel, stride), x)[1](dy)[0]
+    dx = jax.vjp(lambda a: lax_conv3x3(a, kernel, stride), x)[1](dy)[0]
   return dx, dk
 
 

@@ -178,7 +178,9 @@ def _dot_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=No
   return conv3x3_dot(lhs, rhs, int(window_strides[0]))
 
 
-def _lax_conv3x3(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+def lax_conv3x3(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+  """XLA's 3x3 VALID conv, x (N, H, W, C) x kernel (3, 3, C, F) -> (N, Ho, Wo, F): the
+  reference the tower's other formulations equal, and their fallback."""
   return jax.lax.conv_general_dilated(x, kernel, (stride, stride), "VALID",
                                       dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
@@ -203,7 +205,7 @@ def _conv3x3_shift_fwd(x, kernel, stride):
 
 def _conv3x3_shift_bwd(stride, res, dy):
   x, kernel = res
-  return jax.vjp(lambda a, b: _lax_conv3x3(a, b, stride), x, kernel)[1](dy)
+  return jax.vjp(lambda a, b: lax_conv3x3(a, b, stride), x, kernel)[1](dy)
 
 
 conv3x3_shift.defvjp(_conv3x3_shift_fwd, _conv3x3_shift_bwd)

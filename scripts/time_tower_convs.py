@@ -13,16 +13,12 @@ import jax
 import numpy as np
 
 from mjxvine import native_conv
+from mjxvine.networks import lax_conv3x3
 from mjxvine.sac import learner_compiler_options
 
 # (batch, input size, in channels, out channels, stride): the towers' second and third
 # convs at 41x41 with 8 and 16 features, batch 64
 SHAPES = [(64, 20, 8, 8, 1), (64, 20, 16, 16, 1), (64, 9, 8, 8, 2), (64, 9, 16, 16, 2)]
-
-
-def _xla(x, k, s):
-  return jax.lax.conv_general_dilated(x, k, (s, s), "VALID",
-                                      dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
 def _programs(conv, x, k, g, s):
@@ -45,7 +41,7 @@ def main():
     ho = (h - 3) // s + 1
     g = jax.random.normal(keys[2], (n, ho, ho, f))
     progs = {name: _programs(conv, x, k, g, s)
-             for name, conv in (("xla", _xla), ("native", native_conv.conv3x3))}
+             for name, conv in (("xla", lax_conv3x3), ("native", native_conv.conv3x3))}
     times = {name: [[] for _ in range(3)] for name in progs}
     for _ in range(100):
       for name, fns in progs.items():
