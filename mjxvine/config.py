@@ -239,8 +239,10 @@ class SACConfig:
   conv_impl: str = _f("auto", choices=("auto", "xla", "shift", "native"),
                       doc="how the learner computes the conv tower (the same parameters "
                       "and numbers to float32 rounding; evaluation and export use XLA's): "
-                      "auto = shift on the CPU, xla elsewhere; native = shift plus the "
-                      "other convs as the hand-written CPU kernel (mjxvine.native_conv)")
+                      "native = the whole tower as the hand-written CPU kernel "
+                      "(mjxvine.native_conv, x86-64 Linux with a C++ compiler); shift = "
+                      "XLA's convs but the first as a sum of slices; auto = native on the "
+                      "CPU where it builds, else shift, and xla elsewhere")
   reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
                                     "features of obs from the critic loss and the critics "
                                     "as they were before this step's update (as brax's SAC "

@@ -224,25 +224,10 @@ def _shift_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=
                                       precision=precision, **kw)
 
 
-def _native_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None,
-                                 rhs_dilation=None, dimension_numbers=None,
-                                 feature_group_count=1, precision=None, **kw):
-  """As `_shift_conv_general_dilated`, and the tower's other convs, where
-  `native_conv.supports` their channels, as `native_conv.conv3x3`."""
-  from mjxvine import native_conv
-  if (rhs.shape[2] > 1 and lhs.dtype == jnp.float32
-      and _is_tower_conv(rhs, window_strides, padding, lhs_dilation, rhs_dilation,
-                         feature_group_count)
-      and native_conv.supports(rhs.shape[2], rhs.shape[3], int(window_strides[0]))):
-    return native_conv.conv3x3(lhs, rhs, int(window_strides[0]))
-  return _shift_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation,
-                                     rhs_dilation, dimension_numbers, feature_group_count,
-                                     precision, **kw)
-
-
 # what `nn.Conv` calls instead of `lax.conv_general_dilated`, per `conv_impl` ("xla": none)
+# ("native": where `native_conv.tower` does not compute the tower, as "shift")
 _CONV_HOOKS = {"dot": _dot_conv_general_dilated, "shift": _shift_conv_general_dilated,
-               "native": _native_conv_general_dilated}
+               "native": _shift_conv_general_dilated}
 
 
 def max_pool_2x2(x: jax.Array) -> jax.Array:
@@ -254,6 +239,20 @@ def max_pool_2x2(x: jax.Array) -> jax.Array:
   a, b, d, e = x[:, :, 0, :, 0], x[:, :, 0, :, 1], x[:, :, 1, :, 0], x[:, :, 1, :, 1]
   m = jax.lax.stop_gradient(jnp.maximum(jnp.maximum(a, b), jnp.maximum(d, e)))
   return jnp.where(a == m, a, jnp.where(b == m, b, jnp.where(d == m, d, e)))
+
+
+class _ConvParams(nn.Module):
+  """An `nn.Conv`'s 3x3 params, (kernel (3, 3, in_features, features), bias (features,)),
+  under its names and initialisers, for a tower computed by `native_conv.tower`."""
+  in_features: int
+  features: int
+
+  @nn.compact
+  def __call__(self) -> tuple[jax.Array, jax.Array]:
+    kernel = self.param("kernel", nn.initializers.lecun_normal(),
+                        (3, 3, self.in_features, self.features), jnp.float32)
+    return kernel, self.param("bias", nn.initializers.zeros_init(), (self.features,),
+                              jnp.float32)
 
 
 class ConvTower(nn.Module):
@@ -268,8 +267,9 @@ class ConvTower(nn.Module):
   depth_scale: float = 1.0  # the input is multiplied by this (e.g. 1 / max_depth)
   dtype: Any = jnp.float32  # computation dtype of the convs
   conv_impl: str = "xla"  # "xla" (lax.conv_general_dilated), "dot" (im2col and a dot),
-  # "shift" (the first conv as `conv3x3_shift`, the others XLA's) or "native" ("shift"
-  # and the others as `native_conv.conv3x3`)
+  # "shift" (the first conv as `conv3x3_shift`, the others XLA's) or "native" (the whole
+  # tower as `native_conv.tower` where it applies: float32, 8, 16 or 32 features; else
+  # "shift")
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
@@ -285,6 +285,12 @@ class ConvTower(nn.Module):
       from mjxvine import native_conv
       if not native_conv.available():
         raise RuntimeError(f"conv_impl 'native': {native_conv.unavailable_reason()}")
+      if self.dtype == jnp.float32 and native_conv.supports_tower(self.features):
+        params, c = [], x.shape[-1]
+        for i in range(len(CONV_LAYERS)):
+          params.append(_ConvParams(c, self.features, name=f"conv{i}")())
+          c = self.features
+        return native_conv.tower(x, params).reshape(batch_shape + (self.features,))
     dot = self.conv_impl == "dot"
     hook = _CONV_HOOKS.get(self.conv_impl)
     conv = {"conv_general_dilated": hook} if hook else {}

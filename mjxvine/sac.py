@@ -185,15 +185,32 @@ def learner_compiler_options() -> dict | None:
 
 def learner_conv_impl(choice: str = "auto") -> str:
   """How the trainer's networks compute the conv tower (`networks.CONV_IMPLS`):
-  `sac.conv_impl` where it names one; else ("auto") on the CPU backend "shift" (the first
-  conv, one input channel, as a sum of strided slices: 1.2x the env steps/s of a CPU
-  training run while learning, and the same numbers to float32 rounding:
-  docs/results/cpu-update-speed.md); elsewhere "xla", so that
-  accelerator programs and their cost analysis are unchanged. The parameters are the
-  same either way; evaluation and export keep XLA's convolution."""
+  `sac.conv_impl` where it names one; else ("auto") on the CPU backend "native" (the
+  whole tower as one hand-written kernel call, `mjxvine.native_conv`: 3-4x the gradient
+  steps/s of XLA's tower for `cpu.yaml`, docs/results/cpu-update-speed.md) where it
+  builds, else "shift" (the first conv as a sum of strided slices); elsewhere "xla", so
+  that accelerator programs and their cost analysis are unchanged. The parameters, and
+  the numbers to float32 rounding, are the same either way; evaluation and export keep
+  XLA's convolution."""
   if choice != "auto":
     return choice
-  return "shift" if jax.default_backend() == "cpu" else "xla"
+  if jax.default_backend() != "cpu":
+    return "xla"
+  from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
+  return "native" if native_conv.available() else "shift"
+
+
+def describe_conv_impl(choice: str = "auto") -> str:
+  """`learner_conv_impl(choice)` in words, for a run's log: "native (avx512)", or "shift
+  (native: <why not>)" where auto could not take the native tower."""
+  impl = learner_conv_impl(choice)
+  if impl == "native":
+    from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
+    return f"native ({native_conv.instruction_set()})"
+  if choice == "auto" and jax.default_backend() == "cpu":
+    from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
+    return f"{impl} (native: {native_conv.unavailable_reason()})"
+  return impl
 
 
 class SAC(NamedTuple):

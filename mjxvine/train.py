@@ -403,7 +403,8 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
         f"of {steps_per_chunk} env steps; replay {nbytes / 2**20:.1f} MiB per seed "
         f"({nbytes / max(cfg.sac.buffer_size, 1):.0f} B/transition); device "
         f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}"
-        + (f" over {jax.process_count()} processes" if jax.process_count() > 1 else ""))
+        + (f" over {jax.process_count()} processes" if jax.process_count() > 1 else "")
+        + f"; conv tower {sac_lib.describe_conv_impl(cfg.sac.conv_impl)}")
     # The evaluations from fresh starts: every eval_every_chunks chunks and at the end, or
     # only at the end when the closing report is asked for.
     start_eval = (start_evaluator(cfg, seeds)

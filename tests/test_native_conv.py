@@ -1,10 +1,11 @@
-"""The hand-written CPU conv (`mjxvine.native_conv`, conv_impl="native"): the same values
-and gradients as XLA's convolution to float32 rounding, and a clear error where it is not
-built."""
+"""The hand-written CPU tower (`mjxvine.native_conv`, conv_impl="native"): the same values
+and gradients as XLA's tower to float32 rounding, in both of its builds, the same sums
+however many threads run it, and a clear error where it is not built."""
 
 import os
 import subprocess
 import sys
+import textwrap
 
 import jax
 import jax.numpy as jnp
@@ -13,6 +14,7 @@ import pytest
 
 from mjxvine import native_conv
 from mjxvine import networks as nw
+from mjxvine import sac
 
 needs_native = pytest.mark.skipif(not native_conv.available(),
                                   reason=f"native conv: {native_conv.unavailable_reason()}")
@@ -25,54 +27,125 @@ def _close(a, b, tol=1e-4):
   np.testing.assert_allclose(a / scale, b / scale, rtol=0, atol=tol)
 
 
-@needs_native
-@pytest.mark.parametrize("shape, stride", [((3, 11, 9, 8, 8), 1), ((3, 11, 9, 8, 8), 2),
-                                           ((2, 10, 12, 16, 16), 1), ((2, 9, 9, 4, 16), 2),
-                                           ((1, 3, 3, 8, 8), 1)])
-def test_conv_and_gradients_equal_xla(shape, stride):
-  n, h, w, c, f = shape
-  kx, kk, kg = jax.random.split(jax.random.PRNGKey(0), 3)
-  x = jax.random.normal(kx, (n, h, w, c))
-  k = jax.random.normal(kk, (3, 3, c, f))
-  ho, wo = (h - 3) // stride + 1, (w - 3) // stride + 1
-  g = jax.random.normal(kg, (n, ho, wo, f))
-  y, vjp = jax.vjp(lambda a, b: native_conv.conv3x3(a, b, stride), x, k)
-  y_ref, vjp_ref = jax.vjp(lambda a, b: nw.lax_conv3x3(a, b, stride), x, k)
-  assert y.shape == y_ref.shape == (n, ho, wo, f)
-  _close(y, y_ref)
-  for got, want in zip(vjp(g), vjp_ref(g)):
-    _close(got, want)
+def _params(key, channels: int, features: int):
+  keys = jax.random.split(key, 8)
+  params = []
+  for i in range(4):
+    c = channels if i == 0 else features
+    params.append((jax.random.normal(keys[2 * i], (3, 3, c, features)) / np.sqrt(9 * c),
+                   0.1 * jax.random.normal(keys[2 * i + 1], (features,))))
+  return params
+
+
+def _tower_and_grads(tower, x, params, w):
+  """Features, and the gradients of sum(features * w) w.r.t. x and params."""
+  loss = lambda x, p: jnp.sum(tower(x, p) * w)
+  return tower(x, params), jax.grad(loss, argnums=(0, 1))(x, params)
 
 
 @needs_native
-@pytest.mark.parametrize("features", [8, 32])  # 32: the kernel's channels do not apply
-def test_tower_native_equals_xla(features):
-  """The whole tower, its output and its parameters' gradient (41x41, two images)."""
+@pytest.mark.parametrize("n, size, features", [
+    (3, 41, 8),    # cpu.yaml's image
+    (17, 33, 8),   # more images than the gradient's runs of images, unevenly split
+    (2, 49, 16),   # not a covering size: the trailing rows and columns are dropped
+    (1, 41, 32),   # the paper's features
+])
+def test_tower_and_gradients_equal_xla(n, size, features):
+  kx, kp, kw = jax.random.split(jax.random.PRNGKey(n), 3)
+  x = jax.random.uniform(kx, (n, size, size, 1), maxval=2.0)
+  params = _params(kp, 1, features)
+  w = jax.random.normal(kw, (n, features))
+  got = _tower_and_grads(jax.jit(native_conv.tower), x, params, w)
+  want = _tower_and_grads(native_conv.xla_tower, x, params, w)
+  assert got[0].shape == (n, features)
+  jax.tree.map(_close, got, want)
+
+
+@needs_native
+def test_max_pool_ties_go_to_the_first_maximum():
+  """A piecewise-constant image makes equal positive values in the pool's windows: the
+  gradient goes to the first of them in row-major order, as XLA's does."""
+  x = jnp.repeat(jnp.repeat(jnp.arange(4.0).reshape(1, 2, 2, 1), 21, 1), 21, 2)[:, :41, :41]
+  params = [(jnp.abs(k), jnp.abs(b)) for k, b in _params(jax.random.PRNGKey(3), 1, 8)]
+  w = jnp.ones((1, 8))
+  jax.tree.map(_close, _tower_and_grads(jax.jit(native_conv.tower), x, params, w),
+               _tower_and_grads(native_conv.xla_tower, x, params, w))
+
+
+@needs_native
+def test_the_trainer_takes_the_native_tower_on_the_cpu():
+  assert sac.learner_conv_impl() == "native" == sac.learner_conv_impl("native")
+  assert sac.learner_conv_impl("shift") == "shift"
+  assert sac.describe_conv_impl() == f"native ({native_conv.instruction_set()})"
+
+
+@needs_native
+def test_conv_tower_native_is_the_xla_tower():
+  """`ConvTower(conv_impl="native")` has XLA's tower's params (names, shapes, initial
+  values), and its output and gradient."""
   x = jax.random.uniform(jax.random.PRNGKey(1), (2, 41, 41, 1)) * 5.0
-  towers = {impl: nw.ConvTower(features, 0.2, conv_impl=impl) for impl in ("xla", "native")}
-  params = towers["xla"].init(jax.random.PRNGKey(2), x)
+  towers = {impl: nw.ConvTower(8, 0.2, conv_impl=impl) for impl in ("xla", "native")}
+  params = {impl: t.init(jax.random.PRNGKey(2), x) for impl, t in towers.items()}
+  jax.tree.map(np.testing.assert_array_equal, params["native"], params["xla"])
   loss = lambda impl: jax.value_and_grad(
-      lambda p: jnp.sum(towers[impl].apply(p, x) ** 2))(params)
-  (l_xla, g_xla), (l_nat, g_nat) = loss("xla"), loss("native")
-  _close(l_nat, l_xla)
-  jax.tree_util.tree_map(_close, g_nat, g_xla)
+      lambda p: jnp.sum(towers[impl].apply(p, x) ** 2))(params["xla"])
+  jax.tree.map(_close, loss("native"), loss("xla"))
 
 
 @needs_native
 def test_kernel_refuses_what_it_cannot_compute():
-  """The FFI handler checks its shapes itself: a kernel whose channels do not match the
-  image's, or 32 output channels, is an error, not a wrong result."""
-  x = jnp.ones((1, 6, 6, 8))
-  for k in (jnp.ones((3, 3, 4, 8)), jnp.ones((3, 3, 8, 32))):
-    with pytest.raises(Exception, match="tower conv"):
-      jax.block_until_ready(native_conv._forward(x, k, 1))
+  """The FFI handler checks its shapes itself: features other than 8, 16 or 32, or
+  kernels whose channels do not chain, are an error, not a wrong result."""
+  x = jnp.ones((1, 41, 41, 1))
+  bad = [_params(jax.random.PRNGKey(0), 1, 12),
+         _params(jax.random.PRNGKey(0), 2, 8)]  # the first kernel wants 2 channels
+  for params in bad:
+    with pytest.raises(Exception, match="tower: "):
+      jax.block_until_ready(native_conv.tower(x, params))
+
+
+_RUN = textwrap.dedent("""
+    import sys, jax, numpy as np
+    from mjxvine import native_conv
+    x = jax.random.uniform(jax.random.PRNGKey(0), (20, 41, 41, 1), maxval=2.0)
+    params = [(jax.random.normal(jax.random.PRNGKey(i), (3, 3, 1 if i == 0 else 8, 8)) / 8,
+               jax.numpy.full((8,), 0.05)) for i in range(4)]
+    w = jax.random.normal(jax.random.PRNGKey(9), (20, 8))
+    f, g = jax.value_and_grad(lambda p: (native_conv.tower(x, p) * w).sum())(params)
+    np.savez(sys.argv[1], *jax.tree.leaves(g), f=f)
+    print(native_conv.instruction_set())
+""")
+
+
+@needs_native
+def test_same_sums_for_any_thread_count_and_builds_agree(tmp_path):
+  """One thread or two give the same bits (the gradient sums its images in fixed runs);
+  the AVX2 build equals the AVX-512 one (where this CPU has it) to rounding."""
+  def run(name, **env):
+    out = tmp_path / f"{name}.npz"
+    done = subprocess.run([sys.executable, "-c", _RUN, str(out)], capture_output=True,
+                          text=True, timeout=300, env=dict(os.environ, JAX_PLATFORMS="cpu",
+                                                           **env))
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout.split()[-1], dict(np.load(out))
+  build, one = run("one", OMP_NUM_THREADS="1")
+  _, two = run("two", OMP_NUM_THREADS="2")
+  for k in one:
+    np.testing.assert_array_equal(one[k], two[k])
+  if build == "avx512":
+    build, avx2 = run("avx2", MJXVINE_NATIVE_CONV="avx2")
+    assert build == "avx2"
+    for k, v in avx2.items():
+      _close(v, one[k])
 
 
 def test_unavailable_is_reported():
-  """Where the library is off (or cannot be built), `available()` says why and a
-  "native" tower refuses with that reason rather than running something else."""
-  code = ("from mjxvine import native_conv, networks as nw; import jax.numpy as jnp\n"
+  """Where the library is off (or cannot be built), `available()` says why, the trainer's
+  default tower is "shift" and its log line says why, and a "native" tower refuses with
+  that reason rather than running something else."""
+  code = ("from mjxvine import native_conv, networks as nw, sac; import jax.numpy as jnp\n"
           "print(native_conv.available(), native_conv.unavailable_reason())\n"
+          "print('auto:', sac.learner_conv_impl(), '|', sac.describe_conv_impl())\n"
           "try:\n"
           "  nw.ConvTower(8, conv_impl='native').init(__import__('jax').random.PRNGKey(0),"
           " jnp.zeros((1, 41, 41, 1)))\n"
@@ -82,4 +155,5 @@ def test_unavailable_is_reported():
   out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                        text=True, check=True, timeout=120).stdout
   assert "False disabled by MJXVINE_NATIVE_CONV=0" in out
+  assert "auto: shift | shift (native: disabled by MJXVINE_NATIVE_CONV=0)" in out
   assert "refused: conv_impl 'native': disabled by MJXVINE_NATIVE_CONV=0" in out

@@ -117,8 +117,8 @@ def test_resume_with_replay_is_exact(tmp_path):
       train_mod.train(cfg, run, resume=i > 0, quiet=True, evaluate_at_end=False)
     runs[name] = run
   sac, init_fn, _ = train_mod.compiled_trainer(_cfg(80))
-  # the trainer's towers compute as `learner_conv_impl` says (on the CPU the shifted
-  # first conv, whose losses test_sac compares with XLA's convolution)
+  # the trainer's towers compute as `learner_conv_impl` says (on the CPU the native tower
+  # where it builds, else the shifted first conv: test_sac compares both with XLA's)
   assert sac.nets.actor.conv_impl == sac.nets.critic.conv_impl == learner_conv_impl()
   template = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
   (_, a), (_, b) = (Checkpoints(runs[n], True).restore(template) for n in runs)
