@@ -94,8 +94,8 @@ def pad_for_tower(x: jax.Array) -> jax.Array:
 # (docs/results/cpu-update-speed.md). The trainer uses it on the CPU
 # (`sac.learner_conv_impl`); the default of these functions is "xla".
 
-# `conv_impl="native"` is "shift" plus the other convs as a hand-written CPU kernel
-# (`mjxvine.native_conv`, an XLA FFI call; 8 or 16 channels), where it is built.
+# `conv_impl="native"` computes the whole tower as one hand-written CPU kernel call
+# (`mjxvine.native_conv.tower`, XLA FFI; float32, 8, 16 or 32 features), else as "shift".
 
 CONV_IMPLS = ("xla", "dot", "shift", "native")
 

@@ -203,12 +203,11 @@ def learner_conv_impl(choice: str = "auto") -> str:
 def describe_conv_impl(choice: str = "auto") -> str:
   """`learner_conv_impl(choice)` in words, for a run's log: "native (avx512)", or "shift
   (native: <why not>)" where auto could not take the native tower."""
+  from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
   impl = learner_conv_impl(choice)
   if impl == "native":
-    from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
     return f"native ({native_conv.instruction_set()})"
   if choice == "auto" and jax.default_backend() == "cpu":
-    from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
     return f"{impl} (native: {native_conv.unavailable_reason()})"
   return impl
 

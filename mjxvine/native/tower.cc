@@ -361,7 +361,7 @@ struct TowerShapes {
   int64_t h[kLayers + 1], w[kLayers + 1];  // h[0] the image's, h[i] conv i-1's output
   int64_t ph, pw;                          // the pooled size
   int64_t act_at[kLayers + 1], pooled_at, R;
-  size_t work;                             // floats of gradient buffers per thread
+  size_t buffer;                           // floats of each of Backward's 3 buffers
 };
 
 template <int V>
@@ -513,12 +513,12 @@ struct Tower {
   }
 
   // Adds this image's parameter gradients into dk[i], db[i] (the thread's copies); work:
-  // t.work floats.
+  // 3 t.buffer floats.
   void Backward(const float* x, const float* a, const float* dfeat, float* work,
                 float* const* dk, float* const* db) const {
     float* g = work;                      // the gradient w.r.t. the current conv's output
-    float* gin = work + t.work / 3;       // ... w.r.t. its input
-    float* padded = work + 2 * (t.work / 3);
+    float* gin = work + t.buffer;         // ... w.r.t. its input
+    float* padded = work + 2 * t.buffer;
     const int64_t n = t.h[kLayers] * t.w[kLayers];
     for (int64_t p = 0; p < n; ++p)
       for (int f = 0; f < F; ++f) g[p * F + f] = dfeat[f] / static_cast<float>(n);
@@ -572,12 +572,12 @@ ffi::Error TowerCheck(const K4& x, const K4* const* ks, const B1* const* bs, Tow
     }
   }
   t.R = at;
-  t.work = 3 * Lines(most);
+  t.buffer = Lines(most);
   return ffi::Error::Success();
 }
 
-// acts: (N, R) to keep the activations, or null. Images are handed out to the threads a
-// few at a time, as they come free (the call may share the cores with XLA's other work).
+// acts: (N, R) to keep the activations, or null. Each thread takes one run of consecutive
+// images.
 template <int V>
 void TowerForwardV(const TowerShapes& t, const float* x, const float* const* ks,
                    const float* const* bs, float* feat, float* acts) {
@@ -612,7 +612,7 @@ void TowerGradV(const TowerShapes& t, const float* x, const float* const* ks,
   std::fill(part, part + chunks * total, 0.0f);
 #pragma omp parallel
   {
-    float* work = Scratch(2, t.work);
+    float* work = Scratch(2, 3 * t.buffer);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t c = 0; c < chunks; ++c) {
       float* mine = part + c * total;
