@@ -129,13 +129,9 @@ def cost_analysis(compiled) -> dict:
   return {"flops": get("flops"), "bytes_accessed": get("bytes accessed")}
 
 
-def time_call(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3) -> dict:
-  """Compile time, steady-state seconds per call (median) and XLA's cost analysis (flops,
-  bytes accessed per call) of a jitted `fn(*args)`."""
-  t = time.perf_counter()
-  fn = fn.lower(*args).compile()
-  compile_s = time.perf_counter() - t
-  cost = cost_analysis(fn)
+def time_compiled(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3) -> dict:
+  """Steady-state seconds per call of a compiled `fn(*args)`: median, best, median CPU
+  seconds, over at least `min_reps` calls and `min_time` seconds (after one warm-up)."""
   jax.block_until_ready(fn(*args))  # warm-up
   times, cpu, start = [], [], time.perf_counter()
   while len(times) < min_reps or time.perf_counter() - start < min_time:
@@ -143,8 +139,18 @@ def time_call(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3) -> 
     jax.block_until_ready(fn(*args))
     times.append(time.perf_counter() - t)
     cpu.append(time.process_time() - c)
-  return dict(compile_s=compile_s, call_s=float(np.median(times)),
-              best_s=float(np.min(times)), cpu_s=float(np.median(cpu)), reps=len(times), **cost)
+  return dict(call_s=float(np.median(times)), best_s=float(np.min(times)),
+              cpu_s=float(np.median(cpu)), reps=len(times))
+
+
+def time_call(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3) -> dict:
+  """Compile time, steady-state seconds per call (`time_compiled`) and XLA's cost analysis
+  (flops, bytes accessed per call) of a jitted `fn(*args)`."""
+  t = time.perf_counter()
+  fn = fn.lower(*args).compile()
+  compile_s = time.perf_counter() - t
+  return dict(compile_s=compile_s, **time_compiled(fn, *args, min_time=min_time,
+                                                   min_reps=min_reps), **cost_analysis(fn))
 
 
 def _per(cost: float | None, count: int) -> float | None:
@@ -413,24 +419,30 @@ def _update_args(p: argparse.ArgumentParser) -> None:
                       "default: the trainer's, sac.conv_impl)")
   p.add_argument("--compare", action="store_true",
                  help="also time the program compiled with XLA's default options (on a "
-                      "CPU: with YNNPACK's convolutions), interleaved")
+                      "CPU: with YNNPACK's convolutions)")
+  p.add_argument("--rounds", type=_positive_int, default=3,
+                 help="times the update and the matmul are each timed, in turn (1 s "
+                      "each); the row gives their medians")
 
 
 def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   """SAC gradient steps/s (sample from a full replay, twin-critic, actor and target
   updates) at the config's image size and networks, per batch size, timed as the trainer
-  runs them: where a chunk is a host loop (the CPU, `trainer.scan_chunks`), one jitted
-  gradient step (`update_from`) per call, G calls per iteration; else `update_many`, G
-  steps in one program. (On the CPU, `update_many` runs its steps inside a loop, about 3x
-  slower: docs/results/cpu-update-speed.md.)
+  runs them: `update_many`, the G steps of an iteration in one program, on accelerators
+  and with the native tower; else (a chunk as a host loop, `trainer.scan_chunks`, with
+  XLA's convolutions, which XLA:CPU runs about 3x slower inside a loop:
+  docs/results/cpu-update-speed.md) one jitted gradient step (`update_from`) per call, G
+  calls per iteration.
 
-  Each row also gives the achieved GFLOP/s (XLA's cost-analysis flops per call / median
-  seconds per call), the machine's matmul GFLOP/s (`matmul_gflops`, timed right after)
-  and their ratio: the fraction of this machine's matrix-multiply rate the update runs
-  at, steadier than gradient steps/s on a loaded machine. The program is compiled with
+  Each row also gives the achieved GFLOP/s (XLA's cost-analysis flops per gradient step
+  / median seconds per gradient step), the machine's matmul GFLOP/s (`matmul_gflops`) and
+  their ratio: the fraction of this machine's matrix-multiply rate the update runs at.
+  The update and the matmul are timed in turn, `--rounds` times each, so that both see
+  the same load; the row gives the medians, the ratio the median of the rounds' ratios
+  (and their range): steadier than gradient steps/s on a shared machine. The program is compiled with
   `sac.learner_compiler_options()`, as the trainer compiles it ("options" column). With
-  `--conv-impl native` the flops are those of the same step with XLA's convolutions
-  (XLA's cost analysis does not count an FFI call's)."""
+  the native tower the flops are G times those of one step with XLA's convolutions
+  (XLA's cost analysis does not count an FFI call's, nor a loop's trips)."""
   from mjxvine import networks as nw  # pylint: disable=import-outside-toplevel
   from mjxvine import sac as sac_lib  # pylint: disable=import-outside-toplevel
   from mjxvine.env import VineyardEnv  # pylint: disable=import-outside-toplevel
@@ -454,31 +466,40 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
                                  jp.dtype(c.sac.replay_depth_dtype))
     buffer = buffer.replace(rows_written=jp.int32(buffer.num_rows))  # full (zeros)
     learner = sac.init(jax.random.PRNGKey(0), obs)
-    step = sac.update_from if host else sac.update_many
-    if conv_impl == "native":  # XLA does not count an FFI call's work: count XLA's convs'
+    native = nw.native_towers(nets)
+    one_step = host and not native  # G calls of one step (as the trainer's host loop)
+    step = sac.update_from if one_step else sac.update_many
+    if native:  # XLA does not count an FFI call's work: count XLA's convs', G times
       xla_sac = sac_lib.make_sac(nw.make_networks_from_config(c, conv_impl="xla"), c.sac,
                                  mirror=mirror)
-      xla_step = xla_sac.update_from if host else xla_sac.update_many
-      xla_cost = cost_analysis(jax.jit(xla_step, compiler_options=tuned).lower(
+      xla_cost = cost_analysis(jax.jit(xla_sac.update_from, compiler_options=tuned).lower(
           learner, buffer, jax.random.PRNGKey(1)).compile())
+    per_call = 1 if one_step else g  # gradient steps per timed call
+    key = jax.random.PRNGKey(1)
     for name, options in variants:
-      t = time_call(jax.jit(step, compiler_options=options), learner, buffer,
-                    jax.random.PRNGKey(1))
-      if conv_impl == "native":
-        t["flops"] = xla_cost["flops"]
-      if host:  # G calls of one step: the figures of one call, times G
-        t = {k: (v * g if k in ("call_s", "flops", "bytes_accessed") and v is not None
-                 else v) for k, v in t.items()}
-      gflops = None if t["flops"] is None else t["flops"] / t["call_s"] / 1e9
-      mm = matmul_gflops()
+      start = time.perf_counter()
+      compiled = jax.jit(step, compiler_options=options).lower(learner, buffer, key).compile()
+      compile_s = time.perf_counter() - start
+      cost = cost_analysis(compiled)
+      if native:  # per call: G steps' flops; no count of an FFI call's memory traffic
+        cost = {"flops": xla_cost["flops"] * g, "bytes_accessed": None}
+      flops = _per(cost["flops"], per_call)  # per gradient step
+      # the step and the matmul timed in turn, so that both see the same load
+      rounds = [(time_compiled(compiled, learner, buffer, key)["call_s"] / per_call,
+                 matmul_gflops()) for _ in range(args.rounds)]
+      step_s = float(np.median([r[0] for r in rounds]))
+      ratios = [] if flops is None else [flops / s / 1e9 / mm for s, mm in rounds]
       rows.append(dict(batch=b, image=f"{h}x{w}", conv=conv_impl, options=name,
-                       program="update_from (host loop)" if host else "update_many",
-                       grad_steps_per_call=g, grad_steps_per_s=g / t["call_s"],
-                       samples_per_s=g * b / t["call_s"], compile_s=t["compile_s"],
-                       flops_per_grad_step=_per(t["flops"], g),
-                       bytes_per_grad_step=_per(t["bytes_accessed"], g),
-                       gflops=gflops, matmul_gflops=mm,
-                       ratio=None if gflops is None else gflops / mm,
+                       program="update_from (host loop)" if one_step else "update_many",
+                       grad_steps_per_call=per_call, grad_steps_per_s=1.0 / step_s,
+                       samples_per_s=b / step_s, compile_s=compile_s,
+                       flops_per_grad_step=flops,
+                       bytes_per_grad_step=_per(cost["bytes_accessed"], per_call),
+                       gflops=None if flops is None else flops / step_s / 1e9,
+                       matmul_gflops=float(np.median([r[1] for r in rounds])),
+                       ratio=float(np.median(ratios)) if ratios else None,
+                       ratio_range=(f"{min(ratios):.3f}-{max(ratios):.3f}" if ratios
+                                    else None),
                        load_1m=os.getloadavg()[0] if hasattr(os, "getloadavg") else None))
   return rows
 
@@ -778,7 +799,7 @@ def run_all(out: str, quick: bool = False) -> int:
       "physics": ["--sizes", "4", "--steps", "2", *small],
       "env": ["--sizes", "4", "--steps", "2", *small],
       "deploy": ["--calls", "100", "--threads", "1", *small],
-      "update": ["--batch-sizes", "32", *small],
+      "update": ["--batch-sizes", "32", "--rounds", "1", *small],
       "train": ["--sizes", "4", "--iters", "2", *small, "--set", "sac.batch_size=16",
                 "--set", "sac.buffer_size=1024", "--set", "sac.grad_steps_per_iter=1"],
       "brax": ["--steps", "2000", "--evals", "1", "--eval-envs", "16"],

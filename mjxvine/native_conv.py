@@ -9,6 +9,12 @@ the core's cache: `tower(x, params) -> (N, F)`, and its gradient w.r.t. the para
 more. Equal to XLA's tower (`xla_tower`) to float32 rounding (tests/test_native_conv.py);
 docs/results/cpu-update-speed.md has what it gains.
 
+A call cuts its images into runs and hands them to XLA's own intra-op thread pool, the
+one XLA's CPU ops run on, and returns at once (an asynchronous FFI call): tower calls
+that XLA runs side by side, and XLA's other ops, share the cores rather than each
+starting threads of its own. `MJXVINE_NATIVE_THREADS=n` caps the threads of one call
+(default: the pool's size); the results are the same bits for any n.
+
 The library is compiled on first use with the system's C++ compiler (`$CXX` or `g++`)
 into `$MJXVINE_CACHE` (default `~/.cache/mjxvine`), one file per source, flags, jax
 version and compiler, and registered with `jax.ffi`: with AVX-512 on CPUs that have it
@@ -40,7 +46,7 @@ import numpy as np
 from mjxvine.networks import CONV_LAYERS, lax_conv3x3
 
 SOURCE = Path(__file__).parent / "native" / "tower.cc"
-FLAGS = ("-O3", "-mavx2", "-mfma", "-fopenmp", "-shared", "-fPIC", "-std=c++17", "-w")
+FLAGS = ("-O3", "-mavx2", "-mfma", "-shared", "-fPIC", "-std=c++17", "-w")
 AVX512 = ("avx512f", "avx512dq", "avx512bw", "avx512vl")  # the CPU flags of the second build
 AVX512_FLAGS = FLAGS + tuple(f"-m{f}" for f in AVX512)
 TOWER, TOWER_TRAIN, TOWER_GRAD = "mjxvine_tower", "mjxvine_tower_train", "mjxvine_tower_grad"
@@ -162,7 +168,7 @@ def _call(target: str, x: jax.Array, params, activations: bool = False):
   out = [jax.ShapeDtypeStruct((n, f), jnp.float32)]
   if activations:
     out.append(jax.ShapeDtypeStruct((n, _activations_size(h, w, f)), jnp.float32))
-  return jax.ffi.ffi_call(target, out, vmap_method="sequential")(x, *_flat(params))
+  return jax.ffi.ffi_call(target, out, vmap_method="sequential", has_side_effect=os.environ.get("SE")=="1")(x, *_flat(params))
 
 
 @jax.custom_vjp
@@ -186,7 +192,7 @@ def _tower_fwd(x, params):
 def _tower_bwd(res, dfeat):
   x, params, acts = res
   shapes = [jax.ShapeDtypeStruct(a.shape, jnp.float32) for a in _flat(params)]
-  grads = jax.ffi.ffi_call(TOWER_GRAD, shapes, vmap_method="sequential")(
+  grads = jax.ffi.ffi_call(TOWER_GRAD, shapes, vmap_method="sequential", has_side_effect=os.environ.get("SE")=="1")(
       x, *_flat(params), acts, dfeat)
   dparams = type(params)((grads[2 * i], grads[2 * i + 1]) for i in range(len(params)))
   dx = jax.vjp(lambda a: xla_tower(a, params), x)[1](dfeat)[0]

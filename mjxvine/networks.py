@@ -255,6 +255,16 @@ class _ConvParams(nn.Module):
                               jnp.float32)
 
 
+def runs_native_tower(conv_impl: str, features: int, dtype=jnp.float32) -> bool:
+  """Whether a `ConvTower` of these fields computes the whole tower as one kernel call
+  (`native_conv.tower`): "native", float32, and features the kernel covers; else its
+  convs are XLA's."""
+  if conv_impl != "native" or jnp.dtype(dtype) != jnp.float32:
+    return False
+  from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
+  return native_conv.supports_tower(features)
+
+
 class ConvTower(nn.Module):
   """Depth encoder: 4 conv 3x3 (strides 2, 1, [maxpool 2], 2, 1), ReLU, global avg pool.
 
@@ -285,7 +295,7 @@ class ConvTower(nn.Module):
       from mjxvine import native_conv
       if not native_conv.available():
         raise RuntimeError(f"conv_impl 'native': {native_conv.unavailable_reason()}")
-      if self.dtype == jnp.float32 and native_conv.supports_tower(self.features):
+      if runs_native_tower(self.conv_impl, self.features, self.dtype):
         params, c = [], x.shape[-1]
         for i in range(len(CONV_LAYERS)):
           params.append(_ConvParams(c, self.features, name=f"conv{i}")())
@@ -458,6 +468,12 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
                 dtype, conv_impl)
   critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype, conv_impl=conv_impl)
   return SACNetworks(actor, critic, low, high)
+
+
+def native_towers(nets: SACNetworks) -> bool:
+  """Whether the towers of `nets` run as the native kernel, with no XLA convolution (which
+  XLA:CPU runs far slower inside a loop body, jax-ml/jax#12868)."""
+  return runs_native_tower(nets.actor.conv_impl, nets.actor.conv_features, nets.actor.dtype)
 
 
 def make_networks_from_config(cfg, conv_impl: str = "xla") -> SACNetworks:

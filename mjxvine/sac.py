@@ -259,14 +259,16 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
   needed by `cfg.mirror_augment` and `cfg.mirror_average`.
 
   `update_many`'s loop is fully unrolled on the CPU backend when grad_steps_per_iter <=
-  16 (XLA:CPU runs convolutions inside a loop body ~20x slower, jax-ml/jax#12868), else
-  rolled (fast compiles on GPU); the trainer's CPU path calls `update_from` G times
-  from the host instead, which compiles one step only.
+  16 and the towers run XLA's convolutions (XLA:CPU runs those inside a loop body ~20x
+  slower, jax-ml/jax#12868), else rolled (one step compiled; the native tower, which has
+  no XLA convolution, runs as fast rolled). The trainer's CPU path calls `update_many`
+  once an iteration with the native tower, else `update_from` G times from the host.
   """
   # The learning rate lives in the optimiser state (inject_hyperparams), so that runs
   # vmapped over seeds can also differ in it (`mjxvine.train` sweeps).
   opt = optax.inject_hyperparams(optax.adam)(learning_rate=cfg.learning_rate)
-  unroll = jax.default_backend() == "cpu" and cfg.grad_steps_per_iter <= 16
+  unroll = (jax.default_backend() == "cpu" and cfg.grad_steps_per_iter <= 16
+            and not nw.native_towers(nets))
   if (cfg.mirror_augment or cfg.mirror_average) and mirror is None:
     raise ValueError("sac.mirror_augment and sac.mirror_average need an env with a mirror "
                      "image (mirror_obs, mirror_action): the vineyard's; this env has none")

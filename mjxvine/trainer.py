@@ -73,9 +73,10 @@ class NonFiniteError(RuntimeError):
 
 def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
   """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
-  collect, learn_step, summarize): a chunk is `train.iters_per_chunk` iterations, each
-  `collect` (env step, replay insert) then, once `learning`, G = sac.grad_steps_per_iter
-  `learn_step`s; `chunk` runs them on device, the host path calls the pieces.
+  collect, learn_step, learn_steps, summarize): a chunk is `train.iters_per_chunk`
+  iterations, each `collect` (env step, replay insert) then, once `learning`, G =
+  sac.grad_steps_per_iter gradient steps (`learn_steps`, or G `learn_step`s); `chunk`
+  runs them on device, the host path calls the pieces.
   `shard_batch`: see `mjxvine.sac.make_sac` (data parallelism over devices)."""
   n = cfg.env.num_envs
   # The action box comes from the env: the vineyard's [0, v_max] x [-w_max, w_max], or
@@ -146,14 +147,20 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     learner, metrics = sac.update_from(ts.learner, ts.buffer, key, lr_scale(ts))
     return ts.replace(learner=learner), metrics
 
+  def learn_steps(ts: TrainState, k_update: jax.Array):
+    """The iteration's G gradient steps, with the keys of G `learn_step`s; metrics
+    averaged over them."""
+    learner, metrics = sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts))
+    return ts.replace(learner=learner), metrics
+
   def iteration(ts: TrainState, _):
     """collect, then G gradient steps if due (lax.cond): the device path."""
     ts, k_update, learn = collect(ts)
-    learner, metrics = jax.lax.cond(
-        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts)),
-        lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
+    ts, metrics = jax.lax.cond(
+        learn, lambda: learn_steps(ts, k_update),
+        lambda: (ts, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
     metrics["learning"] = learn.astype(jp.float32)
-    return ts.replace(learner=learner), metrics
+    return ts, metrics
 
   def summarize(ts: TrainState, metrics: dict):
     """Chunk metrics: losses averaged over the iterations that learned."""
@@ -170,7 +177,7 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
   def chunk(ts: TrainState):
     return summarize(*jax.lax.scan(iteration, ts, None, cfg.train.iters_per_chunk))
 
-  return sac, init, chunk, collect, learn_step, summarize
+  return sac, init, chunk, collect, learn_step, learn_steps, summarize
 
 
 def scan_chunks(cfg: Config) -> bool:
@@ -186,7 +193,7 @@ def scan_chunks(cfg: Config) -> bool:
 def compiled(cfg: Config, seeds: int, env):
   mesh = parallel.make_mesh(cfg.train.devices)
   parallel.check_divisible(mesh, cfg.env.num_envs, cfg.sac.batch_size)
-  sac, init, chunk, collect, learn_step, summarize = make_trainer(
+  sac, init, chunk, collect, learn_step, learn_steps, summarize = make_trainer(
       cfg, env, parallel.batch_constraint(mesh, seeds))
   batch = (lambda f: f) if seeds == 1 else jax.vmap
   init_one = (lambda k: init(k[0])) if seeds == 1 else jax.vmap(init)
@@ -202,11 +209,15 @@ def compiled(cfg: Config, seeds: int, env):
   learner_options = dict(compiler_options=sac_lib.learner_compiler_options())
   if scan_chunks(cfg):
     return sac, init_fn, jit_state(batch(chunk), (None,), **learner_options)
-  # The host path: the env step and one gradient step are separate programs, so each is
-  # compiled once, and the G gradient steps are G calls (no convolutions in a loop body).
-  collect_fn = jit_state(batch(collect), (None, None))
-  learn_fn = jit_state(batch(learn_step), (None,), **learner_options)
+  # The host path: the env step and the gradient steps are separate programs, so each is
+  # compiled once. The G gradient steps of an iteration are one call of a loop where the
+  # towers are the native kernel; else G calls of one step (no XLA convolution in a loop
+  # body), at the cost of a dispatch, and the state's arguments parsed, per step.
   g = cfg.sac.grad_steps_per_iter
+  one_call = nw.native_towers(sac.nets)
+  collect_fn = jit_state(batch(collect), (None, None))
+  learn_fn = jit_state(batch(learn_steps if one_call else learn_step), (None,),
+                       **learner_options)
   split_fn = jax.jit(batch(lambda k: jax.random.split(k, g)))
   summarize_fn = jax.jit(batch(summarize))
   lead = () if seeds == 1 else (seeds,)
@@ -235,6 +246,10 @@ def compiled(cfg: Config, seeds: int, env):
         if jax.process_index() == 0:  # with jax.distributed, process 0 alone prints
           print(f"learning starts at env step {steps - n}: compiling the gradient step...",
                 file=sys.stderr, flush=True)
+      if one_call:
+        ts, m = learn_fn(ts, k_update)
+        rows.append({**m, "learning": jp.ones(lead)})
+        continue
       keys = split_fn(k_update)
       for i in range(g):
         ts, m = learn_fn(ts, keys[i] if seeds == 1 else keys[:, i])

@@ -580,3 +580,39 @@ def test_cpu_learner_gives_the_same_losses_and_gradients(conv_impl, features):
   ref, out = losses(None, "xla"), losses(sac.learner_compiler_options(), conv_impl)
   for x, y in zip(jax.tree.leaves(out), jax.tree.leaves(ref)):
     np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(y))))
+
+
+@pytest.mark.skipif(not native_conv.available(), reason="the native conv is not built here")
+def test_update_many_with_the_native_tower_is_one_rolled_loop_of_update_from():
+  """With the native tower (no XLA convolution) `update_many` keeps its G steps in one
+  rolled loop, which the trainer's CPU path calls once an iteration instead of G calls
+  of `update_from`, and gives what those G calls give (keys split(key, G)) to float32
+  rounding."""
+  n, size, g = 2, 33, 3
+  nets = nw.make_networks(LOW, HIGH, hidden=8, conv_features=8, depth_scale=0.2,
+                          conv_impl="native")
+  assert nw.native_towers(nets)
+  assert not nw.native_towers(nw.make_networks(LOW, HIGH, conv_features=8, conv_impl="shift"))
+  assert not nw.native_towers(nw.make_networks(LOW, HIGH, conv_features=4, conv_impl="native"))
+  agent = sac.make_sac(nets, SACConfig(batch_size=4, grad_steps_per_iter=g))
+  key = jax.random.PRNGKey(0)
+  obs = {"depth": jax.random.uniform(key, (n, size, size, 1), maxval=5.0),
+         "state": jax.random.normal(key, (n, 3))}
+  learner = jax.jit(agent.init)(key, obs)
+  buffer = sac.init_buffer(obs, 2, capacity=8, depth_dtype=jnp.uint8)
+  for t in range(4):
+    buffer = sac.insert(buffer, sac.Transition(
+        jax.tree.map(lambda x: x + 0.1 * t, obs), jnp.full((n, 2), 0.1 * t), jnp.ones(n),
+        jnp.zeros(n), jnp.zeros(n), obs))
+  options = sac.learner_compiler_options()
+  grads = lambda fn: fn.lower(learner, buffer, key).as_text().count("@mjxvine_tower_grad")
+  one, many = (jax.jit(f, compiler_options=options)
+               for f in (agent.update_from, agent.update_many))
+  assert grads(many) == grads(one) > 0  # one step's tower calls, in a loop body
+  stepped = learner
+  for k in jax.random.split(key, g):
+    stepped, _ = one(stepped, buffer, k)
+  looped, metrics = many(learner, buffer, key)
+  assert int(looped.step) == g and all(np.isfinite(float(v)) for v in metrics.values())
+  for x, y in zip(jax.tree.leaves(looped), jax.tree.leaves(stepped)):
+    np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)

@@ -3,11 +3,14 @@
 // image in one thread through every layer in buffers that stay in the core's cache. XLA's
 // CPU convolution runs its small convs (8-32 channels) far below the machine's matmul
 // rate. Built twice by mjxvine/native_conv.py: with AVX2 + FMA, and with AVX-512 (16
-// lanes) for CPUs that have it; OpenMP over the images.
+// lanes) for CPUs that have it; the images in runs on XLA's own thread pool.
 #include <immintrin.h>
-#include <omp.h>
+#include <atomic>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
+#include <memory>
+#include <mutex>
 #include <new>
 #include <algorithm>
 #include <type_traits>
@@ -47,7 +50,8 @@ struct Aligned {
 using Floats = std::vector<float, Aligned<float>>;
 
 // A thread's buffer `slot` of at least n floats, kept from call to call (not cleared):
-// allocating it afresh in every call costs page faults in each OpenMP thread's heap.
+// allocating it afresh in every call costs page faults in each thread's heap. A run
+// uses it from start to end on one thread.
 inline float* Scratch(int slot, size_t n) {
   thread_local Floats buffers[3];
   if (buffers[slot].size() < n) buffers[slot].resize(n);
@@ -576,21 +580,111 @@ ffi::Error TowerCheck(const K4& x, const K4* const* ks, const B1* const* bs, Tow
   return ffi::Error::Success();
 }
 
-// acts: (N, R) to keep the activations, or null. Each thread takes one run of consecutive
-// images.
+// ---------------------------------------------------------------------------------------
+// Threads: each call is cut into runs of consecutive images, and the runs go to XLA's own
+// intra-op thread pool (the one its CPU ops and its other thunks run on), so that a tower
+// call and whatever XLA runs beside it, another tower call included, share the cores
+// instead of each starting threads of its own. A call returns a future at once: the
+// caller's thread is free for XLA's other work, and the future is set when the last run
+// is done.
+
+// The most threads one call runs on: $MJXVINE_NATIVE_THREADS where set (>= 1), else the
+// pool's size. The results do not depend on it.
+int64_t Threads(ffi::ThreadPool& pool, int64_t runs) {
+  int64_t n = pool.num_threads();
+  if (const char* env = std::getenv("MJXVINE_NATIVE_THREADS")) n = std::atoll(env);
+  return std::clamp<int64_t>(n, 1, std::max<int64_t>(runs, 1));
+}
+
+// A call's work: run(r) for every r in [0, runs), taken in turn by up to Threads() tasks
+// on the pool, then done() once, by the task that finishes last, and the future set.
+struct Job {
+  int64_t runs = 0;
+  std::atomic<int64_t> next{0}, tasks{0};
+  ffi::Promise promise;
+
+  virtual ~Job() = default;
+  virtual void Run(int64_t r) = 0;
+  virtual void Done() {}
+
+  static void Work(const std::shared_ptr<Job>& job) {
+    for (int64_t r = job->next++; r < job->runs; r = job->next++) job->Run(r);
+    if (--job->tasks == 0) {
+      job->Done();
+      job->promise.SetAvailable();
+    }
+  }
+
+  // Starts `job` on the pool; its buffers must live until the future is set.
+  static ffi::Future Start(ffi::ThreadPool& pool, std::shared_ptr<Job> job) {
+    ffi::Future future(job->promise);
+    const int64_t tasks = Threads(pool, job->runs);
+    job->tasks = tasks;
+    for (int64_t i = 0; i < tasks; ++i) pool.Schedule([job] { Work(job); });
+    return future;
+  }
+};
+
+ffi::Future Failed(ffi::Error error) {
+  ffi::Promise promise;
+  ffi::Future future(promise);
+  promise.SetError(std::move(error));
+  return future;
+}
+
+// Reused buffers of floats, for what a call needs until its future is set (a thread's
+// Scratch would be taken by its next call while this one's runs go on).
+class BufferPool {
+ public:
+  Floats Take(size_t n) {
+    Floats out;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (!free_.empty()) out = std::move(free_.back()), free_.pop_back();
+    }
+    if (out.size() < n) out.resize(n);
+    return out;
+  }
+  void Give(Floats buffer) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    free_.push_back(std::move(buffer));
+  }
+
+ private:
+  std::mutex mutex_;
+  std::vector<Floats> free_;
+};
+
+BufferPool& GradParts() {
+  static BufferPool* pool = new BufferPool;  // never destroyed: runs may outlive exit
+  return *pool;
+}
+
+// Images per forward run: enough runs for the threads to balance, few enough that each
+// run's setup is small beside its images.
+constexpr int64_t kForwardRun = 4;
+
+// acts: (N, R) to keep the activations, or null.
 template <int V>
-void TowerForwardV(const TowerShapes& t, const float* x, const float* const* ks,
-                   const float* const* bs, float* feat, float* acts) {
-  const Tower<V> tower(t, ks, bs, false);
-  const int64_t image = t.h[0] * t.w[0] * t.C0;
-#pragma omp parallel
-  {
+struct ForwardJob : Job {
+  TowerShapes t;
+  Tower<V> tower;
+  const float* x;
+  float *feat, *acts;
+
+  ForwardJob(const TowerShapes& shapes, const float* const* ks, const float* const* bs,
+             const float* x, float* feat, float* acts)
+      : t(shapes), tower(t, ks, bs, false), x(x), feat(feat), acts(acts) {
+    runs = (t.N + kForwardRun - 1) / kForwardRun;
+  }
+
+  void Run(int64_t r) override {
+    const int64_t image = t.h[0] * t.w[0] * t.C0;
     float* mine = acts ? nullptr : Scratch(0, t.R);
-#pragma omp for schedule(static)
-    for (int64_t n = 0; n < t.N; ++n)
+    for (int64_t n = r * kForwardRun; n < std::min(t.N, (r + 1) * kForwardRun); ++n)
       tower.Forward(x + n * image, acts ? acts + n * t.R : mine, feat + n * t.F);
   }
-}
+};
 
 // The images in kGradChunks runs of consecutive ones, each summed into its own copy of
 // the gradients, the copies then added in run order: the same sums whichever thread
@@ -598,47 +692,58 @@ void TowerForwardV(const TowerShapes& t, const float* x, const float* const* ks,
 constexpr int64_t kGradChunks = 16;
 
 template <int V>
-void TowerGradV(const TowerShapes& t, const float* x, const float* const* ks,
-                const float* const* bs, const float* acts, const float* dfeat,
-                float* const* dk, float* const* db) {
-  const Tower<V> tower(t, ks, bs, true);
-  const int64_t image = t.h[0] * t.w[0] * t.C0;
+struct GradJob : Job {
+  TowerShapes t;
+  Tower<V> tower;
+  const float *x, *acts, *dfeat;
+  float *dk[kLayers], *db[kLayers];
   int64_t ksize[kLayers], total = 0;
-  for (int i = 0; i < kLayers; ++i)
-    ksize[i] = 9 * (i == 0 ? t.C0 : t.F) * t.F, total += ksize[i] + t.F;
-  total = Lines(total);  // each run's copy on cache lines of its own
-  const int64_t chunks = std::min(kGradChunks, std::max<int64_t>(t.N, 1));
-  float* part = Scratch(1, chunks * total);
-  std::fill(part, part + chunks * total, 0.0f);
-#pragma omp parallel
-  {
+  Floats part;  // runs x total: each run's copy, on cache lines of its own
+
+  GradJob(const TowerShapes& shapes, const float* const* ks, const float* const* bs,
+          const float* x, const float* acts, const float* dfeat, float* const* dks,
+          float* const* dbs)
+      : t(shapes), tower(t, ks, bs, true), x(x), acts(acts), dfeat(dfeat) {
+    for (int i = 0; i < kLayers; ++i) {
+      dk[i] = dks[i], db[i] = dbs[i];
+      ksize[i] = 9 * (i == 0 ? t.C0 : t.F) * t.F, total += ksize[i] + t.F;
+    }
+    total = Lines(total);
+    runs = std::min(kGradChunks, std::max<int64_t>(t.N, 1));
+    part = GradParts().Take(runs * total);
+  }
+
+  void Run(int64_t c) override {
+    float* mine = part.data() + c * total;
+    std::fill(mine, mine + total, 0.0f);
+    float* mdk[kLayers];
+    float* mdb[kLayers];
+    for (int i = 0; i < kLayers; ++i) {
+      mdk[i] = mine, mine += ksize[i];
+      mdb[i] = mine, mine += t.F;
+    }
     float* work = Scratch(2, 3 * t.buffer);
-#pragma omp for schedule(dynamic, 1)
-    for (int64_t c = 0; c < chunks; ++c) {
-      float* mine = part + c * total;
-      float* mdk[kLayers];
-      float* mdb[kLayers];
-      for (int i = 0; i < kLayers; ++i) {
-        mdk[i] = mine, mine += ksize[i];
-        mdb[i] = mine, mine += t.F;
-      }
-      for (int64_t n = t.N * c / chunks; n < t.N * (c + 1) / chunks; ++n)
-        tower.Backward(x + n * image, acts + n * t.R, dfeat + n * t.F, work, mdk, mdb);
-    }
+    const int64_t image = t.h[0] * t.w[0] * t.C0;
+    for (int64_t n = t.N * c / runs; n < t.N * (c + 1) / runs; ++n)
+      tower.Backward(x + n * image, acts + n * t.R, dfeat + n * t.F, work, mdk, mdb);
   }
-  int64_t off = 0;
-  for (int i = 0; i < kLayers; ++i) {
-    for (float* out : {dk[i], db[i]}) {
-      const int64_t size = out == dk[i] ? ksize[i] : t.F;
-      for (int64_t e = 0; e < size; ++e) {
-        float sum = 0.0f;
-        for (int64_t c = 0; c < chunks; ++c) sum += part[c * total + off + e];
-        out[e] = sum;
+
+  void Done() override {
+    int64_t off = 0;
+    for (int i = 0; i < kLayers; ++i) {
+      for (float* out : {dk[i], db[i]}) {
+        const int64_t size = out == dk[i] ? ksize[i] : t.F;
+        for (int64_t e = 0; e < size; ++e) {
+          float sum = 0.0f;
+          for (int64_t c = 0; c < runs; ++c) sum += part[c * total + off + e];
+          out[e] = sum;
+        }
+        off += size;
       }
-      off += size;
     }
+    GradParts().Give(std::move(part));
   }
-}
+};
 
 template <typename Fn>
 void ByFeatures(int64_t F, Fn&& fn) {
@@ -647,57 +752,60 @@ void ByFeatures(int64_t F, Fn&& fn) {
   else fn(std::integral_constant<int, 4>{});
 }
 
-ffi::Error TowerForwardAny(K4& x, K4& k1, B1& b1, K4& k2, B1& b2, K4& k3, B1& b3, K4& k4,
-                           B1& b4, float* feat, F2Out* acts) {
+ffi::Future TowerForwardAny(ffi::ThreadPool& pool, K4& x, K4& k1, B1& b1, K4& k2, B1& b2,
+                            K4& k3, B1& b3, K4& k4, B1& b4, float* feat, F2Out* acts) {
   TowerShapes t;
   const K4* kb[] = {&k1, &k2, &k3, &k4};
   const B1* bb[] = {&b1, &b2, &b3, &b4};
-  if (auto e = TowerCheck(x, kb, bb, t); e.failure()) return e;
+  if (auto e = TowerCheck(x, kb, bb, t); e.failure()) return Failed(std::move(e));
   if (acts && ((*acts)->dimensions()[0] != t.N || (*acts)->dimensions()[1] != t.R))
-    return ffi::Error::InvalidArgument("tower: activations shape does not match");
+    return Failed(ffi::Error::InvalidArgument("tower: activations shape does not match"));
   const float* ks[] = {k1.typed_data(), k2.typed_data(), k3.typed_data(), k4.typed_data()};
   const float* bs[] = {b1.typed_data(), b2.typed_data(), b3.typed_data(), b4.typed_data()};
   float* a = acts ? (*acts)->typed_data() : nullptr;
+  std::shared_ptr<Job> job;
   ByFeatures(t.F, [&](auto v) {
-    TowerForwardV<decltype(v)::value>(t, x.typed_data(), ks, bs, feat, a);
+    job = std::make_shared<ForwardJob<decltype(v)::value>>(t, ks, bs, x.typed_data(), feat, a);
   });
-  return ffi::Error::Success();
+  return Job::Start(pool, std::move(job));
 }
 
-ffi::Error TowerForwardImpl(K4 x, K4 k1, B1 b1, K4 k2, B1 b2, K4 k3, B1 b3, K4 k4, B1 b4,
-                            F2Out feat) {
-  return TowerForwardAny(x, k1, b1, k2, b2, k3, b3, k4, b4, feat->typed_data(), nullptr);
+ffi::Future TowerForwardImpl(ffi::ThreadPool pool, K4 x, K4 k1, B1 b1, K4 k2, B1 b2, K4 k3,
+                             B1 b3, K4 k4, B1 b4, F2Out feat) {
+  return TowerForwardAny(pool, x, k1, b1, k2, b2, k3, b3, k4, b4, feat->typed_data(), nullptr);
 }
 
-ffi::Error TowerTrainImpl(K4 x, K4 k1, B1 b1, K4 k2, B1 b2, K4 k3, B1 b3, K4 k4, B1 b4,
-                          F2Out feat, F2Out acts) {
-  return TowerForwardAny(x, k1, b1, k2, b2, k3, b3, k4, b4, feat->typed_data(), &acts);
+ffi::Future TowerTrainImpl(ffi::ThreadPool pool, K4 x, K4 k1, B1 b1, K4 k2, B1 b2, K4 k3,
+                           B1 b3, K4 k4, B1 b4, F2Out feat, F2Out acts) {
+  return TowerForwardAny(pool, x, k1, b1, k2, b2, k3, b3, k4, b4, feat->typed_data(), &acts);
 }
 
-ffi::Error TowerGradImpl(K4 x, K4 k1, B1 b1, K4 k2, B1 b2, K4 k3, B1 b3, K4 k4, B1 b4,
-                         F2 acts, F2 dfeat, K4Out dk1, B1Out db1, K4Out dk2, B1Out db2,
-                         K4Out dk3, B1Out db3, K4Out dk4, B1Out db4) {
+ffi::Future TowerGradImpl(ffi::ThreadPool pool, K4 x, K4 k1, B1 b1, K4 k2, B1 b2, K4 k3,
+                          B1 b3, K4 k4, B1 b4, F2 acts, F2 dfeat, K4Out dk1, B1Out db1,
+                          K4Out dk2, B1Out db2, K4Out dk3, B1Out db3, K4Out dk4, B1Out db4) {
   TowerShapes t;
   const K4* kb[] = {&k1, &k2, &k3, &k4};
   const B1* bb[] = {&b1, &b2, &b3, &b4};
-  if (auto e = TowerCheck(x, kb, bb, t); e.failure()) return e;
+  if (auto e = TowerCheck(x, kb, bb, t); e.failure()) return Failed(std::move(e));
   if (dfeat.dimensions()[0] != t.N || dfeat.dimensions()[1] != t.F ||
       acts.dimensions()[0] != t.N || acts.dimensions()[1] != t.R)
-    return ffi::Error::InvalidArgument("tower grad: activations or dfeatures shape does not match");
+    return Failed(ffi::Error::InvalidArgument(
+        "tower grad: activations or dfeatures shape does not match"));
   const float* ks[] = {k1.typed_data(), k2.typed_data(), k3.typed_data(), k4.typed_data()};
   const float* bs[] = {b1.typed_data(), b2.typed_data(), b3.typed_data(), b4.typed_data()};
   float* dk[] = {dk1->typed_data(), dk2->typed_data(), dk3->typed_data(), dk4->typed_data()};
   float* db[] = {db1->typed_data(), db2->typed_data(), db3->typed_data(), db4->typed_data()};
+  std::shared_ptr<Job> job;
   ByFeatures(t.F, [&](auto v) {
-    TowerGradV<decltype(v)::value>(t, x.typed_data(), ks, bs, acts.typed_data(),
-                                   dfeat.typed_data(), dk, db);
+    job = std::make_shared<GradJob<decltype(v)::value>>(
+        t, ks, bs, x.typed_data(), acts.typed_data(), dfeat.typed_data(), dk, db);
   });
-  return ffi::Error::Success();
+  return Job::Start(pool, std::move(job));
 }
 
 }  // namespace
 
-#define TOWER_ARGS .Arg<K4>().Arg<K4>().Arg<B1>().Arg<K4>().Arg<B1>().Arg<K4>().Arg<B1>().Arg<K4>().Arg<B1>()
+#define TOWER_ARGS .Ctx<ffi::ThreadPool>().Arg<K4>().Arg<K4>().Arg<B1>().Arg<K4>().Arg<B1>().Arg<K4>().Arg<B1>().Arg<K4>().Arg<B1>()
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(mjxvine_tower, TowerForwardImpl,
                               ffi::Ffi::Bind() TOWER_ARGS.Ret<F2>());
