@@ -596,8 +596,8 @@ int64_t Threads(ffi::ThreadPool& pool, int64_t runs) {
   return std::clamp<int64_t>(n, 1, std::max<int64_t>(runs, 1));
 }
 
-// A call's work: run(r) for every r in [0, runs), taken in turn by up to Threads() tasks
-// on the pool, then done() once, by the task that finishes last, and the future set.
+// A call's work: Run(r) for every r in [0, runs), taken in turn by up to Threads() tasks
+// on the pool, then Done() once, by the task that finishes last, and the future set.
 struct Job {
   int64_t runs = 0;
   std::atomic<int64_t> next{0}, tasks{0};
@@ -656,7 +656,7 @@ class BufferPool {
 };
 
 BufferPool& GradParts() {
-  static BufferPool* pool = new BufferPool;  // never destroyed: runs may outlive exit
+  static BufferPool* pool = new BufferPool;  // never destroyed: a call may run at exit
   return *pool;
 }
 
