@@ -148,19 +148,19 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     return ts.replace(learner=learner), metrics
 
   def learn_steps(ts: TrainState, k_update: jax.Array):
-    """The iteration's G gradient steps, with the keys of G `learn_step`s; metrics
-    averaged over them."""
+    """The iteration's G gradient steps in one program (`sac.update_many`, as `iteration`
+    takes them), with the keys of G `learn_step`s; metrics averaged over them."""
     learner, metrics = sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts))
     return ts.replace(learner=learner), metrics
 
   def iteration(ts: TrainState, _):
     """collect, then G gradient steps if due (lax.cond): the device path."""
     ts, k_update, learn = collect(ts)
-    ts, metrics = jax.lax.cond(
-        learn, lambda: learn_steps(ts, k_update),
-        lambda: (ts, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
+    learner, metrics = jax.lax.cond(
+        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts)),
+        lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
     metrics["learning"] = learn.astype(jp.float32)
-    return ts, metrics
+    return ts.replace(learner=learner), metrics
 
   def summarize(ts: TrainState, metrics: dict):
     """Chunk metrics: losses averaged over the iterations that learned."""
