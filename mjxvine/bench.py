@@ -441,9 +441,8 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
   the same load; the row gives the medians, the ratio the median of the rounds' ratios
   (and their range): steadier than gradient steps/s on a shared machine. The program is
   compiled with `sac.learner_compiler_options()`, as the trainer compiles it ("options"
-  column). With
-  the native tower the flops are G times those of one step with XLA's convolutions
-  (XLA's cost analysis does not count an FFI call's, nor a loop's trips)."""
+  column). With the native tower the flops are G times those of one step with XLA's
+  convolutions (XLA's cost analysis does not count an FFI call's, nor a loop's trips)."""
   from mjxvine import networks as nw  # pylint: disable=import-outside-toplevel
   from mjxvine import sac as sac_lib  # pylint: disable=import-outside-toplevel
   from mjxvine.env import VineyardEnv  # pylint: disable=import-outside-toplevel

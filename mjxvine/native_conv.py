@@ -168,7 +168,7 @@ def _call(target: str, x: jax.Array, params, activations: bool = False):
   out = [jax.ShapeDtypeStruct((n, f), jnp.float32)]
   if activations:
     out.append(jax.ShapeDtypeStruct((n, _activations_size(h, w, f)), jnp.float32))
-  return jax.ffi.ffi_call(target, out, vmap_method="sequential", has_side_effect=os.environ.get("SE")=="1")(x, *_flat(params))
+  return jax.ffi.ffi_call(target, out, vmap_method="sequential")(x, *_flat(params))
 
 
 @jax.custom_vjp
@@ -192,7 +192,7 @@ def _tower_fwd(x, params):
 def _tower_bwd(res, dfeat):
   x, params, acts = res
   shapes = [jax.ShapeDtypeStruct(a.shape, jnp.float32) for a in _flat(params)]
-  grads = jax.ffi.ffi_call(TOWER_GRAD, shapes, vmap_method="sequential", has_side_effect=os.environ.get("SE")=="1")(
+  grads = jax.ffi.ffi_call(TOWER_GRAD, shapes, vmap_method="sequential")(
       x, *_flat(params), acts, dfeat)
   dparams = type(params)((grads[2 * i], grads[2 * i + 1]) for i in range(len(params)))
   dx = jax.vjp(lambda a: xla_tower(a, params), x)[1](dfeat)[0]

@@ -53,7 +53,7 @@ using Floats = std::vector<float, Aligned<float>>;
 // allocating it afresh in every call costs page faults in each thread's heap. A run
 // uses it from start to end on one thread.
 inline float* Scratch(int slot, size_t n) {
-  thread_local Floats buffers[3];
+  thread_local Floats buffers[2];
   if (buffers[slot].size() < n) buffers[slot].resize(n);
   return buffers[slot].data();
 }
@@ -722,7 +722,7 @@ struct GradJob : Job {
       mdk[i] = mine, mine += ksize[i];
       mdb[i] = mine, mine += t.F;
     }
-    float* work = Scratch(2, 3 * t.buffer);
+    float* work = Scratch(1, 3 * t.buffer);
     const int64_t image = t.h[0] * t.w[0] * t.C0;
     for (int64_t n = t.N * c / runs; n < t.N * (c + 1) / runs; ++n)
       tower.Backward(x + n * image, acts + n * t.R, dfeat + n * t.F, work, mdk, mdb);
