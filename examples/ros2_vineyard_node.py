@@ -10,10 +10,11 @@ at the e-stop.
         -r imu:=/imu/data -r cmd_vel:=/cmd_vel
 
 On the robot it needs numpy and the policy code only: mjxvine installed, or just the one
-file mjxvine/deploy.py copied next to this node as mjxvine_deploy.py (numpy and the
-standard library, Python 3.8+), plus rclpy, sensor_msgs, geometry_msgs and std_srvs.
+file mjxvine/deploy/numpy_policy.py copied next to this node as mjxvine_deploy.py (numpy
+and the standard library, Python 3.8+), plus rclpy, sensor_msgs, geometry_msgs and std_srvs.
 
-Subscribes to `depth` (sensor_msgs/Image, 32FC1 metres or 16UC1 millimetres),
+Subscribes to `depth` (sensor_msgs/Image, 32FC1 metres or 16UC1 millimetres, read by
+`depth_from_ros`; other encodings are refused),
 `camera_info` (sensor_msgs/CameraInfo of that image) and `imu` (sensor_msgs/Imu; yaw from
 its orientation quaternion, rad) and publishes geometry_msgs/Twist on `cmd_vel` at
 1 / control_dt (10 Hz): linear.x = v (m/s), angular.z = w (rad/s), from `NumpyPolicy` on
@@ -32,6 +33,11 @@ Parameters:
     negative: the policy's maximum range `max_depth_m`, what the simulator shows for a
     ray that hits nothing (0 would read as an obstacle at the lens).
   timeout_s (float, 0.5): with no fresh image or IMU reading for this long, publish a stop.
+
+Safety: an input the policy refuses (`PolicyInputError`: an unknown image encoding, depth
+out of range or without any reading, a yaw or state out of range) or any other
+`PolicyError` while running publishes a stop (zero velocities), never the last action,
+and logs the reason (throttled); the node drives again once the inputs are valid.
 
 The yaw input follows the policy's `yaw_reference` (metadata): "start" (this project's
 default) is the IMU yaw relative to the heading at the row entrance. The node takes that
@@ -55,26 +61,20 @@ from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_srvs.srv import Trigger
 
 try:
-  from mjxvine.deploy import NumpyPolicy, fov_window
-except ImportError:  # no mjxvine on the robot: mjxvine/deploy.py copied as mjxvine_deploy.py
-  from mjxvine_deploy import NumpyPolicy, fov_window
+  from mjxvine.deploy.numpy_policy import (NumpyPolicy, PolicyError, depth_from_ros,
+                                           fov_window)
+except ImportError:  # no mjxvine on the robot: numpy_policy.py copied as mjxvine_deploy.py
+  from mjxvine_deploy import NumpyPolicy, PolicyError, depth_from_ros, fov_window
+
+LOG_EVERY_S = 2.0  # throttle of repeated warnings and errors
 
 
 def image_to_metres(msg: Image) -> np.ndarray:
-  """A 32FC1 (m) or 16UC1 (mm) Image -> (height, width) float32 metres; pixels without a
-  reading (NaN, inf, 0) -> NaN, which the policy's preprocessing maps to `invalid_depth`."""
-  if msg.encoding == "32FC1":
-    dtype, scale = np.dtype(np.float32), 1.0
-  elif msg.encoding in ("16UC1", "mono16"):
-    dtype, scale = np.dtype(np.uint16), 1e-3
-  else:
-    raise ValueError(f"unsupported depth encoding {msg.encoding!r} (32FC1 or 16UC1)")
-  dtype = dtype.newbyteorder(">" if msg.is_bigendian else "<")
-  rows = np.frombuffer(bytes(msg.data), dtype, count=msg.height * msg.step // dtype.itemsize)
-  raw = rows.reshape(msg.height, -1)[:, : msg.width]
-  img = raw.astype(np.float32) * np.float32(scale)
-  img[~np.isfinite(img) | (img <= 0.0)] = np.nan  # no return
-  return img
+  """A 32FC1 (m) or 16UC1 (mm) Image -> (height, width) float32 metres (16UC1 0, no
+  return, -> NaN, which the policy's preprocessing maps to `invalid_depth`; 32FC1 as
+  sent). Another encoding or a short buffer: `PolicyInputError`."""
+  return depth_from_ros(msg.data, msg.encoding, msg.height, msg.width, msg.step,
+                        bool(msg.is_bigendian))
 
 
 def resize_nearest(img: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -105,6 +105,7 @@ class VineyardNode(Node):
                                    invalid_depth=invalid if invalid >= 0 else None)
     self.window = None  # (rows, cols) of the image inside the policy's field of view
     self.depth = self.depth_time = self.yaw = self.yaw_time = None
+    self.depth_error = None  # why the last image was refused (None: it was not)
     self.imu_yaw = self.yaw_ref = None  # raw IMU yaw and the reference it is measured from
     self.v_prev = self.w_prev = 0.0
     self.create_service(Trigger, "zero_heading", self.on_zero_heading)
@@ -147,9 +148,10 @@ class VineyardNode(Node):
   def on_depth(self, msg: Image) -> None:
     try:
       img = image_to_metres(msg)
-    except ValueError as e:
-      self.get_logger().error(str(e), throttle_duration_sec=5.0)
+    except PolicyError as e:  # stop now, not after timeout_s on the last good image
+      self.depth, self.depth_error = None, f"depth image refused: {e}"
       return
+    self.depth_error = None
     if self.fov_crop:
       if self.window is None:
         self.get_logger().warn("waiting for camera_info (fov_crop)", throttle_duration_sec=5.0)
@@ -174,21 +176,37 @@ class VineyardNode(Node):
     response.message = "heading zeroed" if response.success else "no IMU reading yet"
     return response
 
-  def on_timer(self) -> None:
-    now, twist = self.now(), Twist()
+  def decide(self) -> tuple[float, float]:
+    """(v m/s, w rad/s) to command now: the policy's action, or (0, 0), a stop, with no
+    fresh valid input or when the policy refuses it (the reason is logged, throttled)."""
+    now, log = self.now(), self.get_logger()
+    if self.depth_error is not None:
+      log.error(f"{self.depth_error}: stop", throttle_duration_sec=LOG_EVERY_S)
+      return 0.0, 0.0
     fresh = (self.depth is not None and self.yaw is not None and
              now - self.depth_time < self.timeout and now - self.yaw_time < self.timeout)
-    if fresh:
-      state = np.array([self.v_prev, self.w_prev, self.yaw], np.float32)
+    if not fresh:
+      log.warn("no fresh depth image or IMU yaw: stop", throttle_duration_sec=LOG_EVERY_S)
+      return 0.0, 0.0
+    # The previous command as the policy was trained on it: inside its action box (a
+    # stop is outside a box whose v starts above 0).
+    prev = np.clip([self.v_prev, self.w_prev], self.policy.low, self.policy.high)
+    state = np.array([prev[0], prev[1], self.yaw], np.float32)
+    try:
       v, w = self.policy(self.depth, state)
-      if self.max_speed >= 0:
-        v = min(v, self.max_speed)
-    else:
-      v = w = 0.0
-      self.get_logger().warn("no fresh depth image or IMU yaw: stop", throttle_duration_sec=2.0)
-    twist.linear.x, twist.angular.z = float(v), float(w)
+    except PolicyError as e:  # never the last action: it was for another view
+      log.error(f"policy refused its input: {e}: stop", throttle_duration_sec=LOG_EVERY_S)
+      return 0.0, 0.0
+    if self.max_speed >= 0:
+      v = min(v, self.max_speed)
+    return float(v), float(w)
+
+  def on_timer(self) -> None:
+    v, w = self.decide()
+    twist = Twist()
+    twist.linear.x, twist.angular.z = v, w
     self.cmd.publish(twist)
-    self.v_prev, self.w_prev = float(v), float(w)
+    self.v_prev, self.w_prev = v, w
 
 
 def main(args=None) -> None:

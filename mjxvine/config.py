@@ -240,7 +240,7 @@ class SACConfig:
                       doc="how the learner computes the conv tower (the same parameters "
                       "and numbers to float32 rounding; evaluation and export use XLA's): "
                       "native = the whole tower as the hand-written CPU kernel "
-                      "(mjxvine.native_conv, x86-64 Linux with a C++ compiler); shift = "
+                      "(mjxvine.native, x86-64 Linux with a C++ compiler); shift = "
                       "XLA's convs but the first as a sum of slices; auto = native on the "
                       "CPU where it builds, else shift, and xla elsewhere")
   reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
@@ -266,7 +266,7 @@ class TrainConfig:
   sweep: str = _f("", doc="grid of hyper-parameters trained at once with the seeds (vmap), "
                   "e.g. 'sac.learning_rate=1e-4,1e-3; sac.alpha=0.1,0.2'")
   devices: int = _f(0, 0, 1 << 16, doc="devices the envs, replay and batches are split over "
-                    "(0: all; see mjxvine.parallel)")
+                    "(0: all; see mjxvine.training.parallel)")
   max_minutes: float = _f(0.0, 0.0, 1e6, doc="wall-clock budget: stop (checkpoint, evaluate) "
                           "after the chunk that passes it (0: none)")
   eval_every_chunks: int = _f(0, 0, 1 << 20, doc="deterministic evaluation from fresh starts "
@@ -489,7 +489,12 @@ def read_yaml(path: str | Path) -> dict:
     raise ConfigError(f"config file not found: {path} (shipped configs: "
                       f"{', '.join(packaged_configs())})")
   try:
-    data = yaml.safe_load(path.read_text())
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+  except UnicodeDecodeError as e:
+    raise ConfigError(f"{path}: not a text file (byte {e.start} is not UTF-8); a config "
+                      "is YAML text") from None
+  except OSError as e:
+    raise ConfigError(f"{path}: cannot be read ({e.strerror})") from None
   except yaml.YAMLError as e:
     raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None
   if data is None:

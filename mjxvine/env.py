@@ -39,7 +39,7 @@ from mjxvine.config import Config, action_box, depth_input_scale
 from mjxvine.deploy import MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN
 # The outcome codes are also read from here (starts, evaluate, tests): noqa for those
 # this module does not use itself.
-from mjxvine.protocol import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
+from mjxvine.episodes import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
                               REWARD_PREFIX, RUNNING, SUCCESS, TIMEOUT)
 from mjxvine.wrappers import AutoResetBatch
 from mjxvine.worlds import (ROBOTS, Vineyard, batch_models, build_models, generate_world,
@@ -399,7 +399,7 @@ class VineyardEnv(Env):
 
 
 def training_env(cfg: Config, worlds: Sequence[Vineyard] | None = None) -> AutoResetBatch:
-  """The batch of auto-resetting vineyard envs the trainer uses (`protocol.TrainEnv`): a
+  """The batch of auto-resetting vineyard envs the trainer uses (`episodes.TrainEnv`): a
   new start pose every `env.pose_reset_every` episodes, the same one in between."""
   return AutoResetBatch(VineyardEnv(cfg, worlds), cfg.env.pose_reset_every)
 

@@ -1,4 +1,4 @@
-"""Single-decision latency of an exported policy on this CPU (numpy-only: runs on the robot).
+"""`python -m mjxvine.latency`: single-decision latency of an exported policy on this CPU (numpy-only: runs on the robot).
 
     python -m mjxvine.latency policy.npz [--calls 1000]                  # NumpyPolicy
     python -m mjxvine.latency policy.onnx --threads 1 [--no-spinning]   # onnxruntime
@@ -16,72 +16,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import time
 from pathlib import Path
-from typing import Callable
 
-import numpy as np
-
-from mjxvine.deploy import NumpyPolicy, PolicyError, PolicyFormatError, set_blas_threads
-
-
-def measure(fn: Callable[[], object], calls: int = 1000, warmup: int = 50) -> dict:
-  """Wall-clock ms per call of fn() over `calls` calls: median, p99, mean, min; CPU ms."""
-  for _ in range(warmup):
-    fn()
-  times = np.empty(calls)
-  load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-  cpu = time.process_time()
-  for i in range(calls):
-    t = time.perf_counter()
-    fn()
-    times[i] = time.perf_counter() - t
-  cpu = time.process_time() - cpu
-  times *= 1e3
-  return dict(median_ms=float(np.median(times)), p99_ms=float(np.percentile(times, 99)),
-              mean_ms=float(times.mean()), min_ms=float(times.min()),
-              cpu_ms=1e3 * cpu / calls, calls=calls, load_1m=load)
-
-
-def _inputs(h: int, w: int, max_depth: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-  """A random depth image (h, w) float32 metres and state (3,) float32."""
-  rng = np.random.default_rng(seed)
-  depth = rng.uniform(0.0, max_depth, (h, w)).astype(np.float32)
-  state = np.array([0.3, 0.1, 0.2], np.float32)
-  return depth, state
-
-
-def numpy_latency(path: str | Path, calls: int = 1000, seed: int = 0) -> dict:
-  """`measure` of `NumpyPolicy.load(path)(depth, state)` for one (H, W) image."""
-  policy = NumpyPolicy.load(path)
-  depth, state = _inputs(policy.height, policy.width, policy.max_depth, seed)
-  return measure(lambda: policy(depth, state), calls)
-
-
-def onnx_latency(path: str | Path, threads: int = 1, calls: int = 1000, seed: int = 0,
-                 spinning: bool = True) -> dict:
-  """`measure` of an onnxruntime session (CPU, `threads` intra-op threads, sequential
-  execution, all graph optimisations) on a (1, H, W, 1) image and (1, 3) state."""
-  import onnxruntime as ort
-
-  opts = ort.SessionOptions()
-  opts.intra_op_num_threads = threads
-  opts.inter_op_num_threads = 1
-  opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-  opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-  opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
-  try:
-    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-  except Exception as e:  # noqa: BLE001 - onnxruntime's load errors have no public base
-    raise PolicyFormatError(f"{path}: not a valid ONNX model ({str(e).splitlines()[0][:160]})"
-                            ) from None
-  _, h, w, _ = sess.get_inputs()[0].shape
-  meta = json.loads(sess.get_modelmeta().custom_metadata_map.get("mjxvine_meta", "{}"))
-  depth, state = _inputs(h, w, float(meta.get("max_depth_m", 5.0)), seed)
-  feed = {"depth": depth[None, :, :, None], "state": state[None]}
-  return measure(lambda: sess.run(["action"], feed), calls)
+from mjxvine.deploy.latency import numpy_latency, onnx_latency
+from mjxvine.deploy.numpy_policy import PolicyError, set_blas_threads
 
 
 def main(argv=None) -> int:

@@ -184,9 +184,9 @@ def learner_compiler_options() -> dict | None:
 
 
 def learner_conv_impl(choice: str = "auto") -> str:
-  """How the trainer's networks compute the conv tower (`networks.CONV_IMPLS`):
+  """How the trainer's networks compute the conv tower (`tower.CONV_IMPLS`):
   `sac.conv_impl` where it names one; else ("auto") on the CPU backend "native" (the
-  whole tower as one hand-written kernel call, `mjxvine.native_conv`: 3-4x the gradient
+  whole tower as one hand-written kernel call, `mjxvine.native`: 3-4x the gradient
   steps/s of XLA's tower for `cpu.yaml`, docs/results/cpu-update-speed.md) where it
   builds, else "shift" (the first conv as a sum of strided slices); elsewhere "xla", so
   that accelerator programs and their cost analysis are unchanged. The parameters, and
@@ -196,19 +196,19 @@ def learner_conv_impl(choice: str = "auto") -> str:
     return choice
   if jax.default_backend() != "cpu":
     return "xla"
-  from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
-  return "native" if native_conv.available() else "shift"
+  from mjxvine import native  # pylint: disable=import-outside-toplevel
+  return "native" if native.available() else "shift"
 
 
 def describe_conv_impl(choice: str = "auto") -> str:
   """`learner_conv_impl(choice)` in words, for a run's log: "native (avx512)", or "shift
   (native: <why not>)" where auto could not take the native tower."""
-  from mjxvine import native_conv  # pylint: disable=import-outside-toplevel
+  from mjxvine import native  # pylint: disable=import-outside-toplevel
   impl = learner_conv_impl(choice)
   if impl == "native":
-    return f"native ({native_conv.instruction_set()})"
+    return f"native ({native.instruction_set()})"
   if choice == "auto" and jax.default_backend() == "cpu":
-    return f"{impl} (native: {native_conv.unavailable_reason()})"
+    return f"{impl} (native: {native.unavailable_reason()})"
   return impl
 
 
@@ -253,7 +253,7 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
              mirror: tuple[Callable, Callable] | None = None) -> SAC:
   """Builds the SAC learner for `nets` with hyper-parameters `cfg`.
 
-  shard_batch: applied to every sampled batch; `mjxvine.parallel`'s `batch_constraint`
+  shard_batch: applied to every sampled batch; `mjxvine.training.parallel`'s `batch_constraint`
   splits it over the devices (data-parallel gradients).
   mirror: (mirror_obs, mirror_action) of a left-right symmetric env (`VineyardEnv`'s),
   needed by `cfg.mirror_augment` and `cfg.mirror_average`.
@@ -343,12 +343,13 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
                                   unroll=unroll)
     return state, jax.tree.map(jnp.mean, metrics)
 
+  make_policy = nw.make_inference_fn(nets, mirror if cfg.mirror_average else None)
+
   def act(actor_params: Params, obs: Obs, key: jax.Array) -> jax.Array:
-    mean, log_std = nets.actor.apply({"params": actor_params}, obs)
-    return nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)[0]
+    return make_policy(actor_params, deterministic=False)(obs, key)
 
   def act_deterministic(actor_params: Params, obs: Obs) -> jax.Array:
-    return nw.act_deterministic(nets, actor_params, obs, mirror if cfg.mirror_average else None)
+    return make_policy(actor_params)(obs)
 
   return SAC(nets, cfg, init, update, update_from, update_many, act, act_deterministic)
 

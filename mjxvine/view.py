@@ -4,8 +4,8 @@
     python -m mjxvine.view --policy policy.npz --world test --lane 4R
     python -m mjxvine.view --policy oracle --world train --lane 2F --noise 0
 
-The policy drives one env with the evaluator's own stepping (`evaluate.protocol_steps`:
-the same reset, policy call and control step as the protocol, one env), in real time
+The policy drives one env with the evaluator's own stepping (`rollout.drive`: the same
+reset, policy call and control step as the protocol, one env), in real time
 (one control step per `env.control_dt` of wall clock, when the machine keeps up); each
 pose is shown in `mujoco.viewer.launch_passive`. When an episode ends the outcome is
 printed and, after a pause, the lane starts again (close the window or Ctrl-C to stop).
@@ -20,9 +20,6 @@ import argparse
 import os
 import sys
 import time
-from typing import Iterator
-
-import numpy as np
 
 NO_DISPLAY = ("no display: the interactive viewer needs a desktop session (DISPLAY or "
               "WAYLAND_DISPLAY); to watch a run headless, film it: python -m mjxvine.evaluate "
@@ -36,37 +33,6 @@ def has_display() -> bool:
   return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def drive(env, policy, lane: int, direction: str, key, max_steps: int | None = None
-          ) -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
-  """Steps one env of `env` (a `VineyardEnv`) with `policy` from the start of `lane`
-  (1-based) in `direction` ("F"/"R"), as the evaluator does (`evaluate.protocol_steps`
-  with one env). Yields (qpos (nq,), action (2,) [v m/s, w rad/s], outcome code) after
-  each control step, first the start (action 0, outcome running), and stops after the
-  step that ends the episode or after `max_steps` (default `eval.max_steps`). The keys
-  (depth noise, a stochastic policy's draws) are the evaluator's for the same `key`."""
-  import jax
-  import jax.numpy as jp
-
-  from mjxvine.evaluate import CHUNK_STEPS, protocol_steps
-  from mjxvine.protocol import RUNNING
-  limit = env.cfg.eval.max_steps if max_steps is None else max_steps
-  reset, body, _ = protocol_steps(env, policy, 1)
-  step = jax.jit(body)
-  k_reset, k_run = jax.random.split(key)
-  carry = reset(k_reset, jp.asarray([lane - 1]),
-                jp.asarray([1.0 if direction == "F" else -1.0], jp.float32))
-  yield np.asarray(carry[0].pipeline_state.qpos[0]), np.zeros(2, np.float32), RUNNING
-  t = 0
-  while t < limit:  # the evaluator's keys: one per step, CHUNK_STEPS from each chunk key
-    k_run, k = jax.random.split(k_run)
-    for k_step in jax.random.split(k, CHUNK_STEPS)[:limit - t]:
-      carry, (_, action, _, outcome, _) = step(carry, k_step)
-      code, t = int(outcome[0]), t + 1
-      yield np.asarray(carry[0].pipeline_state.qpos[0]), np.asarray(action[0]), code
-      if code != RUNNING:
-        return
-
-
 def _world(spec: str, cfg):
   """--world: "test" (the config's test world), "train" (its first training world), a
   test-world seed or a world .json file."""
@@ -78,7 +44,8 @@ def _world(spec: str, cfg):
   return make_world(spec, cfg.world)
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
+  """The command line's flags."""
   p = argparse.ArgumentParser(prog="python -m mjxvine.view", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--policy", required=True, help="oracle, random, a run dir or a .npz")
@@ -96,45 +63,42 @@ def main(argv=None) -> int:
   p.add_argument("--once", action="store_true", help="drive the lane once, then exit")
   from mjxvine.config import add_config_args
   add_config_args(p)
-  args = p.parse_args(argv)
-  if not has_display():  # before anything is built: one line
-    print(f"error: {NO_DISPLAY}", file=sys.stderr)
-    return 2
-  if args.noise is not None and not args.noise >= 0:
-    p.error(f"--noise {args.noise}: the noise factor must be >= 0")
+  return p
 
+
+def load(args):
+  """(env, policy, its name, config source, world, (lane, direction)) of the flags; the
+  env has the one world and the protocol's episode limit."""
+  from mjxvine.config import replace
+  from mjxvine.env import VineyardEnv
+  from mjxvine.evaluation.policies import check_policy_file, load_policy
+  from mjxvine.evaluation.rollout import parse_lanes
+  from mjxvine.rundir.settings import policy_config
+  if args.policy not in ("oracle", "random"):
+    check_policy_file(args.policy, args.which)
+  cfg, source = policy_config(args.policy, args.config, args.overrides, args.which)
+  world = _world(args.world, cfg)
+  ((lane, direction),) = parse_lanes(args.lane, len(world.lanes))
+  noise = cfg.eval.noise_factor if args.noise is None else args.noise
+  cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
+  env = VineyardEnv(cfg, [world], noise_factor=noise)
+  policy, name = load_policy(args.policy, env, args.which, args.member)
+  return env, policy, name, source, world, (lane, direction)
+
+
+def watch(env, policy, lane: int, direction: str, seed: int, once: bool) -> int:
+  """Shows `policy` driving `lane` in `direction` in the passive viewer, in real time,
+  again and again (`once`: one episode) until the window is closed."""
   import jax
   import mujoco
   import mujoco.viewer
 
-  from mjxvine.config import ConfigError, enable_compile_cache, replace
-  from mjxvine.deploy import PolicyError
-  from mjxvine.env import OUTCOMES, VineyardEnv
-  from mjxvine.evaluate import check_policy_file, load_policy, parse_lanes
-  from mjxvine.runs import policy_config
-  enable_compile_cache()
-  try:
-    if args.policy not in ("oracle", "random"):
-      check_policy_file(args.policy, args.which)
-    cfg, source = policy_config(args.policy, args.config, args.overrides, args.which)
-    world = _world(args.world, cfg)
-    ((lane, direction),) = parse_lanes(args.lane, len(world.lanes))
-    noise = cfg.eval.noise_factor if args.noise is None else args.noise
-    cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
-    env = VineyardEnv(cfg, [world], noise_factor=noise)
-    policy, name = load_policy(args.policy, env, args.which, args.member)
-  except ConfigError as e:
-    print(f"config error: {e}", file=sys.stderr)
-    return 2
-  except (PolicyError, FileNotFoundError, ValueError) as e:
-    print(f"error: {e}", file=sys.stderr)
-    return 2
+  from mjxvine.env import OUTCOMES
+  from mjxvine.evaluation.rollout import drive
   model = env.mj_model
   data = mujoco.MjData(model)
-  dt = cfg.env.control_dt
-  print(f"{name} (config: {source}) on lane {lane}{direction} of the {world.kind} world; "
-        f"compiling the step (a minute on a CPU)...", file=sys.stderr, flush=True)
-  key = jax.random.PRNGKey(args.seed)
+  dt = env.cfg.env.control_dt
+  key = jax.random.PRNGKey(seed)
   with mujoco.viewer.launch_passive(model, data) as viewer:
     # a camera that follows the robot (the body of the free joint); the mouse still moves it
     viewer.cam.type = mujoco.mjtCamera.mjCAMERA_TRACKING
@@ -154,10 +118,35 @@ def main(argv=None) -> int:
         time.sleep(max(0.0, t_next - time.perf_counter()))
       print(f"lane {lane}{direction}: {OUTCOMES[code]} after {steps - 1} steps "
             f"({(steps - 1) * dt:.1f} s)", file=sys.stderr, flush=True)
-      if args.once:
+      if once:
         return 0
       time.sleep(2.0)
   return 0
+
+
+def main(argv=None) -> int:
+  p = parser()
+  args = p.parse_args(argv)
+  if not has_display():  # before anything is built: one line
+    print(f"error: {NO_DISPLAY}", file=sys.stderr)
+    return 2
+  if args.noise is not None and not args.noise >= 0:
+    p.error(f"--noise {args.noise}: the noise factor must be >= 0")
+
+  from mjxvine.config import ConfigError, enable_compile_cache
+  from mjxvine.deploy import PolicyError
+  enable_compile_cache()
+  try:
+    env, policy, name, source, world, (lane, direction) = load(args)
+  except ConfigError as e:
+    print(f"config error: {e}", file=sys.stderr)
+    return 2
+  except (PolicyError, FileNotFoundError, ValueError) as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  print(f"{name} (config: {source}) on lane {lane}{direction} of the {world.kind} world; "
+        f"compiling the step (a minute on a CPU)...", file=sys.stderr, flush=True)
+  return watch(env, policy, lane, direction, args.seed, args.once)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 
   * `AutoResetBatch(env, new_start_every)`: N copies of one env under `vmap`, each
     restarted when its episode ends, with a new start every `new_start_every` episodes
-    (the paper's pose schedule: 10). It satisfies `mjxvine.protocol.TrainEnv`.
+    (the paper's pose schedule: 10). It satisfies `mjxvine.episodes.TrainEnv`.
   * `EpisodeWrapper(env, episode_length)`: a plain brax `Env` (e.g.
     `brax.envs.get_environment("inverted_pendulum")`) as a single env of this package: a
     time limit that truncates, episode returns and outcome codes in `info`.
@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jp
 from brax.envs.base import Env, State
 
-from mjxvine.protocol import RUNNING, TIMEOUT
+from mjxvine.episodes import RUNNING, TIMEOUT
 
 # What a restarted env keeps of the episode that just ended, for the trainer's logs.
 EPISODE_FIELDS = ("last_return", "last_outcome", "last_length", "truncation")
@@ -115,6 +115,6 @@ class EpisodeWrapper:
 
 def brax_env(env: Env, episode_length: int, action_low: float = -1.0,
              action_high: float = 1.0) -> AutoResetBatch:
-  """A plain brax env behind the trainer's interface (`protocol.TrainEnv`): vector
+  """A plain brax env behind the trainer's interface (`episodes.TrainEnv`): vector
   observations go through the MLP torso of `mjxvine.networks`."""
   return AutoResetBatch(EpisodeWrapper(env, episode_length, action_low, action_high))

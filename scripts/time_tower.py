@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjxvine import native_conv
+from mjxvine import native
 from mjxvine import networks as nw
 from mjxvine.sac import learner_compiler_options
 
@@ -39,8 +39,8 @@ def main():
   p.add_argument("--features", type=int, nargs="+", default=[8, 16])
   p.add_argument("--calls", type=int, default=100)
   args = p.parse_args()
-  impls = IMPLS if native_conv.available() else IMPLS[:2]
-  print(f"native: {native_conv.instruction_set() if native_conv.available() else native_conv.unavailable_reason()}")
+  impls = IMPLS if native.available() else IMPLS[:2]
+  print(f"native: {native.instruction_set() if native.available() else native.unavailable_reason()}")
   print(f"tower {args.size}x{args.size}, batch {args.batch}: median ms of {args.calls} calls "
         f"(forward | forward + gradient), {' / '.join(impls)}")
   for f in args.features:

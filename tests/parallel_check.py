@@ -14,7 +14,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
-from mjxvine import parallel, train  # noqa: E402
+from mjxvine.training import parallel, programs  # noqa: E402
 from mjxvine.config import load_config  # noqa: E402
 
 OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=4", "env.max_steps=8",
@@ -29,7 +29,7 @@ def config(devices: int):
 
 
 def one_chunk(devices: int):
-  _, init_fn, chunk_fn = train.compiled_trainer(config(devices))
+  _, init_fn, chunk_fn = programs.compiled_trainer(config(devices))
   ts = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
   ts, metrics = chunk_fn(ts)
   return ts, jax.device_get(metrics)
@@ -45,8 +45,8 @@ def main():
   out["finite"] = bool(all(np.all(np.isfinite(v)) for m in (m1, m4) for v in m.values()))
   # One update from the same learner state and replay: once on 1 device,
   # once with the replay split over 4 and the batch split (gradients all-reduced).
-  sac1 = train.compiled_trainer(config(1))[0]
-  sac4 = train.compiled_trainer(config(4))[0]
+  sac1 = programs.compiled_trainer(config(1))[0]
+  sac4 = programs.compiled_trainer(config(4))[0]
   key = jax.random.PRNGKey(5)
   on4 = jax.device_put(ts1, parallel.train_state_sharding(ts1, parallel.make_mesh(4)))
   (up1, u1), (up4, u4) = (jax.jit(s.update_many)(t.learner, t.buffer, key)

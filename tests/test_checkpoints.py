@@ -1,4 +1,4 @@
-"""`mjxvine.checkpoint`: which checkpoint of a run export/evaluate restore (best or last),
+"""`mjxvine.rundir.checkpoints`: which checkpoint of a run export/evaluate restore (best or last),
 from relative paths, the one-line errors (exit status 2) of a run directory that is not
 there, and `Checkpoints` (save, best, restore, a corrupt step) read back as a policy."""
 
@@ -13,7 +13,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from mjxvine import checkpoint, evaluate, export, policies
+from mjxvine.rundir import checkpoints as checkpoint, evaluate, export, policies
 from mjxvine import networks as nw
 
 
@@ -222,7 +222,7 @@ def test_each_member_keeps_its_own_best_policy(tmp_path, tiny_actor):
   file; a worse evaluation keeps the file, and the files load with numpy alone."""
   from mjxvine.config import load_config
   from mjxvine.deploy import NumpyPolicy
-  from mjxvine.train import MemberBest
+  from mjxvine.training.hooks import MemberBest
 
   _, actor, obs = tiny_actor
   cfg = load_config(None, ["camera.width=36", "camera.height=36", "sac.hidden=8",

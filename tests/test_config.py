@@ -83,7 +83,7 @@ def test_experiment_configs_load():
 
 
 def test_sweep_grid_and_its_errors():
-  from mjxvine.trainer import sweep_members
+  from mjxvine.training.iteration import sweep_members
   cfg = load_config(None, ["train.num_seeds=2",
                            "train.sweep=sac.learning_rate=1e-4,1e-3; sac.alpha=0.1"])
   members = sweep_members(cfg)

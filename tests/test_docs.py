@@ -227,7 +227,7 @@ def policy_dir(tmp_path_factory):
   """A folder with `policy.npz`: a small actor with random weights (40x40 depth)."""
   import jax
   import jax.numpy as jnp
-  from mjxvine import export
+  from mjxvine.deploy import export
   from mjxvine import networks as nw
   from mjxvine.config import load_config
   cfg = load_config(ROOT / "experiments/smoke.yaml", ["sac.hidden=16", "sac.conv_features=4"])

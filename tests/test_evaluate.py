@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 
 from mjxvine.config import load_config
-from mjxvine import evaluate
+from mjxvine.deploy import read_policy_file
 from mjxvine.env import OUTCOMES
-from mjxvine.evaluate import distance_to_line, main as evaluate_main, trajectory_errors
+from mjxvine.evaluate import main as evaluate_main
+from mjxvine.evaluation import geometry, metrics, report, rollout
+from mjxvine.evaluation.geometry import distance_to_line, trajectory_errors
 from mjxvine.worlds import generate_world
 
 
@@ -77,33 +79,33 @@ def test_bad_policy_and_world_fail_in_one_line(tmp_path, capsys):
 
 def test_lane_progress():
   line = np.stack([np.linspace(0, 10, 41), 0.2 * np.sin(np.linspace(0, 3, 41))], -1)
-  length = evaluate.arc_length(line)
+  length = geometry.arc_length(line)
   assert length > 10.0
   fwd = line[:13]  # a forward run that stopped at x = 3
-  assert evaluate.lane_progress(fwd, line, "F") == pytest.approx(
-      evaluate.arc_length(line[:13]), abs=1e-9)
+  assert geometry.lane_progress(fwd, line, "F") == pytest.approx(
+      geometry.arc_length(line[:13]), abs=1e-9)
   rev = line[::-1][:9]  # a reverse run from x = 10 to x = 8
-  assert evaluate.lane_progress(rev, line, "R") == pytest.approx(
-      evaluate.arc_length(line[-9:]), abs=1e-9)
+  assert geometry.lane_progress(rev, line, "R") == pytest.approx(
+      geometry.arc_length(line[-9:]), abs=1e-9)
   # wobbling back does not lower the furthest point; outside the lane's ends clamps
-  assert evaluate.lane_progress(np.concatenate([fwd, fwd[:3]]), line, "F") == pytest.approx(
-      evaluate.lane_progress(fwd, line, "F"))
-  assert evaluate.lane_progress(np.array([[-1.0, 0.0], [12.0, 0.0]]), line, "F") == pytest.approx(
+  assert geometry.lane_progress(np.concatenate([fwd, fwd[:3]]), line, "F") == pytest.approx(
+      geometry.lane_progress(fwd, line, "F"))
+  assert geometry.lane_progress(np.array([[-1.0, 0.0], [12.0, 0.0]]), line, "F") == pytest.approx(
       length)
   straight = np.stack([np.linspace(0, 10, 41), np.zeros(41)], -1)  # off-centre: its projection
-  assert evaluate.lane_progress(np.array([[0.5, 0.4], [4.2, -0.3]]), straight, "F") == (
+  assert geometry.lane_progress(np.array([[0.5, 0.4], [4.2, -0.3]]), straight, "F") == (
       pytest.approx(4.2))
-  assert evaluate.lane_progress(np.array([[9.5, 0.4], [4.2, -0.3]]), straight, "R") == (
+  assert geometry.lane_progress(np.array([[9.5, 0.4], [4.2, -0.3]]), straight, "R") == (
       pytest.approx(5.8))
-  assert evaluate.lane_progress(np.zeros((0, 2)), line, "R") == 0.0
+  assert geometry.lane_progress(np.zeros((0, 2)), line, "R") == 0.0
 
 
 def _row(outcomes, covered_frac, lane=1, direction="F"):
   codes = [OUTCOMES.index(o) for o in outcomes]
   errs = [np.full(10, 0.1) for _ in outcomes]
   acts = [np.tile([0.4, 0.0], (10, 1)) for _ in outcomes]
-  row = evaluate._summary(errs, acts, codes, [10] * len(codes), 0.1,
-                          [24.0 * f for f in covered_frac], covered_frac)
+  row = metrics.group_metrics(errs, acts, codes, [10] * len(codes), 0.1,
+                              [24.0 * f for f in covered_frac], covered_frac)
   row.update(lane=lane, direction=direction, shape="straight", outcomes=list(outcomes))
   return row
 
@@ -124,18 +126,18 @@ def test_metrics_of_failed_runs_are_not_reported_as_comparable():
   assert none["lane_covered_frac"] == pytest.approx(0.15)
   assert none["lane_covered_m"] == pytest.approx(3.6)
   overall = _row(["success"] * 3 + ["collision"] * 3, [1, 1, 1, 0.25, 0.1, 0.2])
-  overall.update(evaluate.mean_of_rows([full, partial, none]))
+  overall.update(metrics.mean_of_rows([full, partial, none]))
   assert overall["mae_m_rows"] == pytest.approx(0.1) and overall["rows_status"] == "partial"
-  md = evaluate.results_markdown(_doc([full, partial, none], overall))
+  md = report.results_markdown(_doc([full, partial, none], overall))
   lines = {l.split("|")[1].strip(): l for l in md.splitlines() if l.startswith("| ")}
   assert "| 100% (24.0 m) | 0.100 (0.076) | 0.100 (0.089) |" in lines["1F"]
   assert "| 62% (15.0 m) | 0.100 (partial) (0.131) | 0.100 (partial) (0.141) |" in lines["1R"]
   assert "| 15% (3.6 m) | n/a (0.068) | n/a (0.076) |" in lines["2F"]
   assert "0.100 (partial) (0.114)" in lines["overall"]
   assert "lane covered" in lines["test row"]
-  assert evaluate.metrics_status(0, 0) == "n/a"
+  assert metrics.metrics_status(0, 0) == "n/a"
   nothing = _row(["collision"], [0.05])
-  assert "MAE/RMSE n/a" in evaluate._title(_doc([nothing], nothing))
+  assert "MAE/RMSE n/a" in report.figure_title(_doc([nothing], nothing))
 
 
 def test_trajectories_figure(tmp_path):
@@ -150,9 +152,9 @@ def test_trajectories_figure(tmp_path):
                     "xy": (part + [0.0, 0.1 if direction == "F" else -0.1]).tolist()})
   overall = _row(["success"] * 5 + ["collision"] * 5, [1.0] * 5 + [0.3] * 5)
   doc = dict(_doc([], overall), trajectories=trajs)
-  evaluate.plot_trajectories(doc, world, tmp_path / "t.png")
+  report.plot_trajectories(doc, world, tmp_path / "t.png")
   assert (tmp_path / "t.png").stat().st_size > 10_000
-  assert "(partial: only some runs reached the EoR)" in evaluate._title(doc)
+  assert "(partial: only some runs reached the EoR)" in report.figure_title(doc)
 
 
 def test_bad_runs_noise_and_policy_file(tmp_path, capsys):
@@ -167,8 +169,8 @@ def test_bad_runs_noise_and_policy_file(tmp_path, capsys):
   assert "corrupt.npz: not a valid policy file" in err and "allow_pickle" not in err
   assert len(err.splitlines()) == 1
   with pytest.raises(ValueError, match="runs=0"):
-    evaluate.evaluate(load_config(), "oracle", generate_world("test", 0, load_config().world),
-                      runs=0, noise_factor=1.0)
+    rollout.evaluate(load_config(), "oracle", generate_world("test", 0, load_config().world),
+                     runs=0, noise_factor=1.0)
 
 
 @pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
@@ -176,7 +178,8 @@ def test_paper_suite_oracle(tmp_path):
   """The whole suite in one call on two short test worlds: every table is there, the
   privileged oracle drives every run to the end of its row, and the overall figure is
   the mean of the rows (the paper's convention)."""
-  from mjxvine.suite import NOISE_FACTORS, paper_suite
+  from mjxvine.evaluation.paper import NOISE_FACTORS
+  from mjxvine.evaluation.suite import paper_suite
   cfg = load_config(None, ["world.test_length_m=8", "camera.width=16", "camera.height=12",
                            "eval.max_steps=200"])
   report = paper_suite(cfg, "oracle", tmp_path, runs=1, worlds=(2, 3))
@@ -235,7 +238,8 @@ def test_a_run_is_evaluated_filmed_and_exported_with_its_own_config(small_run, m
   """evaluate, export and evaluate of the export, with relative paths and no --config:
   the networks, camera and world come from the run's config.yaml; the export's results
   equal the run's; the video of a run decodes to one frame per step plus the start."""
-  from mjxvine import export, video
+  from mjxvine import export
+  from mjxvine.evaluation import video
   root, run = small_run
   monkeypatch.chdir(root)
   try:
@@ -254,7 +258,7 @@ def test_a_run_is_evaluated_filmed_and_exported_with_its_own_config(small_run, m
   assert "(config: run/config.yaml)" in capsys.readouterr().err
 
   assert export.main(["--checkpoint", run, "--out", "p.npz"]) == 0
-  _, meta = evaluate.read_policy_file("p.npz")
+  _, meta = read_policy_file("p.npz")
   assert meta["image_size"] == [34, 36] and meta["max_depth_m"] == 5.0
   assert evaluate_main(["--policy", "p.npz", "--out", "ev2", *film]) == 0
   doc2 = json.loads(Path("ev2/results.json").read_text())
@@ -274,7 +278,7 @@ def test_an_override_of_what_the_networks_need_is_one_line(small_run, monkeypatc
   assert "sac.hidden = 64: the policy was trained with 16" in capsys.readouterr().err
   assert not Path("x").exists() and not Path("x.npz").exists()
   # what does not touch the networks may change: the config says so
-  from mjxvine.runs import policy_config
+  from mjxvine.rundir.settings import policy_config
   cfg, source = policy_config(run, overrides=["eval.max_steps=30", "robot.name=husky"])
   assert (cfg.camera.height, cfg.camera.width, cfg.sac.hidden) == (34, 36, 16)
   assert cfg.eval.max_steps == 30 and cfg.robot.name == "husky"
@@ -284,9 +288,36 @@ def test_an_override_of_what_the_networks_need_is_one_line(small_run, monkeypatc
 def test_signed_offsets_and_lane_lists():
   line = np.stack([np.linspace(0, 10, 11), np.zeros(11)], -1)
   pts = np.array([[2.0, 0.3], [5.0, -0.2]])
-  np.testing.assert_allclose(evaluate.signed_offsets(pts, line, "F"), [0.3, -0.2])
-  np.testing.assert_allclose(evaluate.signed_offsets(pts, line, "R"), [-0.3, 0.2])
-  assert evaluate.parse_lanes("1F, 4r", 5) == [(1, "F"), (4, "R")]
+  np.testing.assert_allclose(geometry.signed_offsets(pts, line, "F"), [0.3, -0.2])
+  np.testing.assert_allclose(geometry.signed_offsets(pts, line, "R"), [-0.3, 0.2])
+  assert rollout.parse_lanes("1F, 4r", 5) == [(1, "F"), (4, "R")]
   for bad in ("6F", "1X", "F"):
     with pytest.raises(ValueError, match="not a lane-direction"):
-      evaluate.parse_lanes(bad, 5)
+      rollout.parse_lanes(bad, 5)
+
+
+def test_cases_are_built_group_by_group():
+  cases = rollout.Cases()
+  first = cases.add(0, [(1, "F"), (2, "R")], 1.0, 2)
+  second = cases.add(1, [(4, "F")], 8.0, 1)
+  assert list(first) == [0, 1, 2, 3] and list(second) == [4]
+  assert cases == [(0, 1, "F", 1.0), (0, 1, "F", 1.0), (0, 2, "R", 1.0), (0, 2, "R", 1.0),
+                   (1, 4, "F", 8.0)]
+  world = generate_world("test", 3, load_config(None, ["world.test_length_m=8"]).world)
+  assert rollout.all_lanes(world) == [(lane, d) for lane in range(1, len(world.lanes) + 1)
+                                      for d in ("F", "R")]
+
+
+def test_the_papers_figures():
+  """The paper's overall row is the mean of its rows (successes: the sum), as ours."""
+  from mjxvine.evaluation import paper
+  rows = [v for k, v in paper.PAPER.items() if k != "overall"]
+  overall = paper.PAPER["overall"]
+  for i in (0, 1, 2, 3, 4, 5):
+    assert np.mean([r[i] for r in rows]) == pytest.approx(overall[i], abs=1e-3)
+  assert sum(r[6] for r in rows) == overall[6] and paper.PAPER_RUNS == 50
+  assert paper.weak_rows() == ["3R 2/5", "5F 3/5"]
+  assert paper.noise_rows() == paper.robot_rows() == [(1, "F"), (4, "F")]
+  assert set(paper.PAPER_NOISE) <= set(paper.NOISE_FACTORS)
+  assert set(paper.PAPER_ROBOTS) == set(paper.PAPER_ROBOT_TIMES) == {
+      (r, f"{lane}F") for r in paper.ROBOTS for lane in paper.ROBOT_LANES}

@@ -13,9 +13,10 @@ with the last bits of its arithmetic (another CPU, another fusion of the same st
 import jax
 import pytest
 
-from mjxvine import starts
-from mjxvine import train as train_mod
-from mjxvine.checkpoint import Checkpoints
+from mjxvine.evaluation import starts
+from mjxvine.training import loop
+from mjxvine.training import programs
+from mjxvine.rundir.checkpoints import Checkpoints
 from mjxvine.config import load_config, replace
 
 pytestmark = pytest.mark.slow  # minutes on 2 cores: `pytest -m slow` (CI runs it)
@@ -27,16 +28,16 @@ HARD_STARTS = {"start_yaw_jitter_deg": 25.0, "start_lateral_jitter_m": 0.3}
 
 def test_sac_beats_random_and_straight_in_both_directions(tmp_path):
   cfg = load_config("experiments/default.yaml")
-  row = train_mod.train(cfg, tmp_path, quiet=True, evaluate_at_end=False)
+  row = loop.train(cfg, tmp_path, quiet=True, evaluate_at_end=False)
   assert row["env_steps"] == cfg.train.total_env_steps
-  sac, init_fn, _ = train_mod.compiled_trainer(cfg)
+  sac, init_fn, _ = programs.compiled_trainer(cfg)
   template = init_fn(jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
   _, best = Checkpoints(tmp_path, False).restore(template, best=True)
-  run = train_mod.start_evaluator(replace(cfg, env=HARD_STARTS, train={"eval_starts": 128}))
+  run = programs.start_evaluator(replace(cfg, env=HARD_STARTS, train={"eval_starts": 128}))
   key = jax.random.PRNGKey(11)
   success = {}
   for name, policy in (("trained", starts.ACTOR), *starts.BASELINES.items()):
-    out = run(train_mod.starts_params(best.learner.policy_params, policy), key)
+    out = run(programs.starts_params(best.learner.policy_params, policy), key)
     success[name] = (float(out["success_forward"]), float(out["success_reverse"]))
   for d, direction in enumerate(("forward", "reverse")):
     trained = success["trained"][d]

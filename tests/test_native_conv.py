@@ -1,4 +1,4 @@
-"""The hand-written CPU tower (`mjxvine.native_conv`, conv_impl="native"): the same values
+"""The hand-written CPU tower (`mjxvine.native`, conv_impl="native"): the same values
 and gradients as XLA's tower to float32 rounding, in both of its builds, the same sums
 however many threads run it, and a clear error where it is not built."""
 
@@ -12,12 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mjxvine import native_conv
+from mjxvine import native
 from mjxvine import networks as nw
 from mjxvine import sac
 
-needs_native = pytest.mark.skipif(not native_conv.available(),
-                                  reason=f"native conv: {native_conv.unavailable_reason()}")
+needs_native = pytest.mark.skipif(not native.available(),
+                                  reason=f"native conv: {native.unavailable_reason()}")
 
 
 def _close(a, b, tol=1e-4):
@@ -55,8 +55,8 @@ def test_tower_and_gradients_equal_xla(n, size, features):
   x = jax.random.uniform(kx, (n, size, size, 1), maxval=2.0)
   params = _params(kp, 1, features)
   w = jax.random.normal(kw, (n, features))
-  got = _tower_and_grads(jax.jit(native_conv.tower), x, params, w)
-  want = _tower_and_grads(native_conv.xla_tower, x, params, w)
+  got = _tower_and_grads(jax.jit(native.tower), x, params, w)
+  want = _tower_and_grads(native.xla_tower, x, params, w)
   assert got[0].shape == (n, features)
   jax.tree.map(_close, got, want)
 
@@ -68,15 +68,15 @@ def test_max_pool_ties_go_to_the_first_maximum():
   x = jnp.repeat(jnp.repeat(jnp.arange(4.0).reshape(1, 2, 2, 1), 21, 1), 21, 2)[:, :41, :41]
   params = [(jnp.abs(k), jnp.abs(b)) for k, b in _params(jax.random.PRNGKey(3), 1, 8)]
   w = jnp.ones((1, 8))
-  jax.tree.map(_close, _tower_and_grads(jax.jit(native_conv.tower), x, params, w),
-               _tower_and_grads(native_conv.xla_tower, x, params, w))
+  jax.tree.map(_close, _tower_and_grads(jax.jit(native.tower), x, params, w),
+               _tower_and_grads(native.xla_tower, x, params, w))
 
 
 @needs_native
 def test_the_trainer_takes_the_native_tower_on_the_cpu():
   assert sac.learner_conv_impl() == "native" == sac.learner_conv_impl("native")
   assert sac.learner_conv_impl("shift") == "shift"
-  assert sac.describe_conv_impl() == f"native ({native_conv.instruction_set()})"
+  assert sac.describe_conv_impl() == f"native ({native.instruction_set()})"
 
 
 @needs_native
@@ -101,19 +101,19 @@ def test_kernel_refuses_what_it_cannot_compute():
          _params(jax.random.PRNGKey(0), 2, 8)]  # the first kernel wants 2 channels
   for params in bad:
     with pytest.raises(Exception, match="tower: "):
-      jax.block_until_ready(native_conv.tower(x, params))
+      jax.block_until_ready(native.tower(x, params))
 
 
 _RUN = textwrap.dedent("""
     import sys, jax, numpy as np
-    from mjxvine import native_conv
+    from mjxvine import native
     x = jax.random.uniform(jax.random.PRNGKey(0), (20, 41, 41, 1), maxval=2.0)
     params = [(jax.random.normal(jax.random.PRNGKey(i), (3, 3, 1 if i == 0 else 8, 8)) / 8,
                jax.numpy.full((8,), 0.05)) for i in range(4)]
     w = jax.random.normal(jax.random.PRNGKey(9), (20, 8))
-    f, g = jax.value_and_grad(lambda p: (native_conv.tower(x, p) * w).sum())(params)
+    f, g = jax.value_and_grad(lambda p: (native.tower(x, p) * w).sum())(params)
     np.savez(sys.argv[1], *jax.tree.leaves(g), f=f)
-    print(native_conv.instruction_set())
+    print(native.instruction_set())
 """)
 
 
@@ -144,8 +144,8 @@ def test_unavailable_is_reported():
   """Where the library is off (or cannot be built), `available()` says why, the trainer's
   default tower is "shift" and its log line says why, and a "native" tower refuses with
   that reason rather than running something else."""
-  code = ("from mjxvine import native_conv, networks as nw, sac; import jax.numpy as jnp\n"
-          "print(native_conv.available(), native_conv.unavailable_reason())\n"
+  code = ("from mjxvine import native, networks as nw, sac; import jax.numpy as jnp\n"
+          "print(native.available(), native.unavailable_reason())\n"
           "print('auto:', sac.learner_conv_impl(), '|', sac.describe_conv_impl())\n"
           "try:\n"
           "  nw.ConvTower(8, conv_impl='native').init(__import__('jax').random.PRNGKey(0),"

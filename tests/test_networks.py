@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mjxvine import networks as nw
+from mjxvine import tower
 from mjxvine.config import load_config
 
 LOW, HIGH = np.array([0.0, -1.0], np.float32), np.array([0.5, 1.0], np.float32)
@@ -69,8 +70,8 @@ def test_actor_critic_shapes_and_batch_dims():
 
 
 def test_tower_rejects_too_small_images(spec_nets):
-  assert nw.tower_output_size((112, 112)) == (11, 11)  # padded to 113
-  assert nw.tower_output_size((33, 40)) == (1, 2) and nw.MIN_IMAGE_SIZE == 33
+  assert tower.tower_output_size((112, 112)) == (11, 11)  # padded to 113
+  assert tower.tower_output_size((33, 40)) == (1, 2) and tower.MIN_IMAGE_SIZE == 33
   with pytest.raises(ValueError, match="too small"):
     jax.eval_shape(lambda k: nw.init_params(spec_nets, k, _vine_obs((1,), 32)),
                    jax.random.PRNGKey(0))
@@ -194,15 +195,15 @@ def _input_reach(hw):
 
 
 def test_covering_sizes():
-  assert [nw.covering_size(n) for n in (33, 40, 41, 64, 65, 112, 113)] == [
+  assert [tower.covering_size(n) for n in (33, 40, 41, 64, 65, 112, 113)] == [
       33, 41, 41, 65, 65, 113, 113]
-  assert nw.tower_pad((40, 40)) == (1, 1) and nw.tower_pad((41, 112)) == (0, 1)
+  assert tower.tower_pad((40, 40)) == (1, 1) and tower.tower_pad((41, 112)) == (0, 1)
   # an image of a covering size goes through unchanged; others repeat their last row/column
   x = jnp.arange(40 * 41, dtype=jnp.float32).reshape(1, 40, 41, 1)
-  padded = nw.pad_for_tower(x)
+  padded = tower.pad_for_tower(x)
   assert padded.shape == (1, 41, 41, 1)
   np.testing.assert_array_equal(padded[0, 40], x[0, 39])
-  assert nw.pad_for_tower(padded) is padded
+  assert tower.pad_for_tower(padded) is padded
 
 
 # compare.yaml feeds brax's SAC vector observations (the depth pooled to 8x8): no tower.
@@ -224,7 +225,7 @@ def test_conv3x3_matches_lax_conv_values_and_gradients(impl, channels, stride):
   """im2col and a dot (its gradient written by hand), and the one-channel conv as a sum of
   9 strided slices, equal XLA's convolution in values and gradients (w.r.t. the image and
   the kernel) to float32 rounding, also for sizes a strided conv does not cover evenly."""
-  conv = {"dot": nw.conv3x3_dot, "shift": nw.conv3x3_shift}[impl]
+  conv = {"dot": tower.conv3x3_dot, "shift": tower.conv3x3_shift}[impl]
   kx, kk, kd = jax.random.split(jax.random.PRNGKey(0), 3)
   x = jax.random.normal(kx, (2, 12, 11, channels))
   kernel = jax.random.normal(kk, (3, 3, channels, 4))

@@ -1,4 +1,4 @@
-"""Data parallelism over devices (mjxvine.parallel): on 4 host CPU devices, in a fresh
+"""Data parallelism over devices (mjxvine.training.parallel): on 4 host CPU devices, in a fresh
 process (the device count is fixed when JAX starts), one chunk trains on 1 and on 4
 devices; the envs and the replay are split over the devices, and the first gradient step
 agrees to float tolerance."""

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mjxvine import depth
-from mjxvine import native_conv
+from mjxvine import native
 from mjxvine import networks as nw
 from mjxvine import sac
 from mjxvine.config import SACConfig
@@ -550,7 +550,7 @@ def test_mirror_half_flips_whole_transitions():
 @pytest.mark.parametrize("conv_impl, features", [
     ("xla", 4), ("shift", 4),
     pytest.param("native", 8, marks=pytest.mark.skipif(
-        not native_conv.available(), reason="the native conv is not built here"))])
+        not native.available(), reason="the native conv is not built here"))])
 def test_cpu_learner_gives_the_same_losses_and_gradients(conv_impl, features):
   """A fixed depth batch: the critic and actor losses and their gradients compiled with
   `learner_compiler_options()` (the trainer's) and with the tower computed as `conv_impl`
@@ -582,7 +582,7 @@ def test_cpu_learner_gives_the_same_losses_and_gradients(conv_impl, features):
     np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(y))))
 
 
-@pytest.mark.skipif(not native_conv.available(), reason="the native conv is not built here")
+@pytest.mark.skipif(not native.available(), reason="the native conv is not built here")
 def test_update_many_with_the_native_tower_is_one_rolled_loop_of_update_from():
   """With the native tower (no XLA convolution) `update_many` keeps its G steps in one
   rolled loop, which the trainer's CPU path calls once an iteration instead of G calls

@@ -1,4 +1,5 @@
-"""The best checkpoint chosen on validation worlds (`mjxvine.select`): a tiny run trains
+"""The best checkpoint chosen on validation worlds (`mjxvine.choose`, its library
+`mjxvine.evaluation.choice`): a tiny run trains
 with train.select_worlds, and the trainer scores its best evaluated policies on a
 validation world, picks the one with the most successes (then the lower MAE), writes the
 record and RUN/selected.npz, which a run dir's best policy then means; an interrupted
@@ -11,11 +12,13 @@ import numpy as np
 import pytest
 from test_train import EVAL, _cfg
 
-from mjxvine import select
+from mjxvine import choose, select
 from mjxvine import train as train_mod
-from mjxvine.checkpoint import restore_actor_params
+from mjxvine.rundir.checkpoints import restore_actor_params
 from mjxvine.config import ConfigError, load_config
 from mjxvine.deploy import read_policy_file
+from mjxvine.evaluation import choice
+from mjxvine.worlds import generate_world
 
 # one validation world, one run per lane-direction, short episodes; the trainer's program
 # is test_train.py's (these keys do not shape it)
@@ -37,10 +40,10 @@ def test_the_trainer_chooses_on_the_validation_world(selected_run):
   evals = {r["env_steps"]: r for r in rows if "eval_success_forward" in r}
   assert sorted(evals) == [40, 80]
   # the candidates: both evaluations, best first by the fresh-start rule (earlier of equals)
-  order = sorted(evals, key=lambda s: train_mod._score(evals[s]), reverse=True)
+  order = sorted(evals, key=lambda s: choice.fresh_start_score(evals[s]), reverse=True)
   assert [c["env_steps"] for c in record["candidates"]] == order
   assert record["protocol"]["worlds"] == [100]
-  lanes = len(select.validation_worlds(load_config(run / "config.yaml"))[0].lanes)
+  lanes = len(choice.validation_worlds(load_config(run / "config.yaml"))[0].lanes)
   for c in record["candidates"]:
     v = c["validation"]
     # every lane-direction once, and rows 1F and 4F three times at noise 8 and at 10
@@ -49,7 +52,7 @@ def test_the_trainer_chooses_on_the_validation_world(selected_run):
     assert v["success"] == v["worlds"]["100"]["success"] + sum(
         sum(n.values()) for n in v["noise"].values())
     assert c["trainer"]["eval_mae_m"] == pytest.approx(evals[c["env_steps"]]["eval_mae_m"])
-  best = max(record["candidates"], key=lambda c: select.rank(c["validation"]))
+  best = max(record["candidates"], key=lambda c: choice.rank(c["validation"]))
   assert record["selected"] == best["env_steps"] == row["selected_env_steps"]
   kept = run / "eval_policies" / f"env{record['selected']}.npz"
   assert (run / "selected.npz").read_bytes() == kept.read_bytes()
@@ -68,9 +71,34 @@ def test_a_run_dir_means_its_selected_policy(selected_run):
 
 def test_rank_orders_successes_then_mae():
   a = {"success": 10, "mae_m": 0.05}
-  assert select.rank(a) > select.rank({"success": 9, "mae_m": 0.01})
-  assert select.rank(a) > select.rank({"success": 10, "mae_m": 0.06})
-  assert select.rank({"success": 0, "mae_m": None}) < select.rank({"success": 0, "mae_m": 1.0})
+  assert choice.rank(a) > choice.rank({"success": 9, "mae_m": 0.01})
+  assert choice.rank(a) > choice.rank({"success": 10, "mae_m": 0.06})
+  assert choice.rank({"success": 0, "mae_m": None}) < choice.rank({"success": 0, "mae_m": 1.0})
+
+
+def test_fresh_start_score_orders_the_weaker_direction_then_mae():
+  def row(fwd, rev, mae):
+    return {"eval_success_forward": fwd, "eval_success_reverse": rev, "eval_mae_m": mae}
+  assert choice.fresh_start_score(row(1.0, 0.5, 0.1)) < choice.fresh_start_score(
+      row(0.6, 0.6, 0.2))
+  assert choice.fresh_start_score(row(0.5, 0.5, 0.1)) > choice.fresh_start_score(
+      row(0.5, 0.9, 0.2))
+  evals = {40: row(0.5, 0.5, 0.1), 80: row(0.5, 0.5, 0.1), 120: row(0.9, 0.8, 0.3)}
+  # best first, the earlier of equals first; only kept policies
+  assert choice.candidates(evals, {40, 80, 120}, 3) == [120, 40, 80]
+  assert choice.candidates(evals, {80}, 3) == [80]
+
+
+def test_validation_cases_are_the_paper_noise_rows():
+  from mjxvine.evaluation import paper
+  worlds = [generate_world("test", 3, load_config(None, ["world.test_length_m=8"]).world)]
+  cases, tables, noise = choice.validation_cases(worlds, 2, 1.0, (8, 10))
+  lanes = len(worlds[0].lanes)
+  assert list(tables[0]) == list(range(4 * lanes))
+  assert cases[:3] == [(0, 1, "F", 1.0), (0, 1, "F", 1.0), (0, 1, "R", 1.0)]
+  assert sorted(noise) == [8.0, 10.0]
+  assert [cases[i][1:] for i in noise[8.0]] == [
+      (lane, "F", 8.0) for lane in paper.NOISE_LANES for _ in range(paper.NOISE_RUNS)]
 
 
 def test_a_selection_resumes_from_its_record(selected_run, tmp_path, monkeypatch, capsys):
@@ -82,8 +110,8 @@ def test_a_selection_resumes_from_its_record(selected_run, tmp_path, monkeypatch
   record["selected"] = None
   (copy / "selection.json").write_text(json.dumps(record))
   # every candidate is in the record: nothing is driven again
-  monkeypatch.setattr(select, "score_policy", lambda *a, **k: pytest.fail("scored again"))
-  assert select.main([str(copy)]) == 0
+  monkeypatch.setattr(choice, "score_policy", lambda *a, **k: pytest.fail("scored again"))
+  assert choose.main([str(copy)]) == 0
   again = json.loads((copy / "selection.json").read_text())
   assert again["selected"] == json.loads((run / "selection.json").read_text())["selected"]
   assert (copy / "selected.npz").read_bytes() == (run / "selected.npz").read_bytes()
@@ -92,14 +120,16 @@ def test_a_selection_resumes_from_its_record(selected_run, tmp_path, monkeypatch
 
 def test_bad_requests_fail_in_one_line(selected_run, tmp_path, capsys):
   run, _ = selected_run
-  assert select.main([str(tmp_path)]) == 2
+  assert choose.main([str(tmp_path)]) == 2
   assert "no config.yaml" in capsys.readouterr().err
-  assert select.main([str(run), "--set", "train.select_worlds=0"]) == 2
+  assert select.main([str(tmp_path)]) == 2  # the old name still answers
+  assert "no config.yaml" in capsys.readouterr().err
+  assert choose.main([str(run), "--set", "train.select_worlds=0"]) == 2
   assert "train.select_worlds = 0" in capsys.readouterr().err
   empty = tmp_path / "empty"
   empty.mkdir()
   shutil.copy(run / "config.yaml", empty / "config.yaml")
-  assert select.main([str(empty)]) == 2
+  assert choose.main([str(empty)]) == 2
   assert "no evaluated policy" in capsys.readouterr().err
   for bad, key in ((["train.select_world_seed=3"], "train.select_world_seed"),
                    (["train.select_worlds=2", "train.num_seeds=2"], "train.select_worlds")):

@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 from conftest import NUMPY_ONLY_PRELUDE
 
-from mjxvine import evaluate as ev
-from mjxvine import runs
 from mjxvine.config import config_hash, load_config, to_dict
 from mjxvine.deploy import NumpyPolicy
-from mjxvine.protocol import OUTCOMES, SUCCESS
+from mjxvine.episodes import OUTCOMES, SUCCESS
+from mjxvine.evaluation.metrics import summarize
+from mjxvine.evaluation.rollout import rollout_cases
+from mjxvine.rundir.settings import policy_config
 from mjxvine.worlds import load_test_world
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,7 +59,7 @@ def test_metadata_is_the_config_that_trained_it():
   records."""
   meta = NumpyPolicy.load(MODEL).meta
   cfg = load_config(str(CONFIG))
-  file_cfg, _ = runs.policy_config(MODEL)
+  file_cfg, _ = policy_config(MODEL)
   assert to_dict(file_cfg) == to_dict(cfg)
   current = json.loads(json.dumps(to_dict(cfg)))
   for section, values in meta["config"].items():
@@ -75,11 +76,11 @@ def test_the_evaluator_acts_as_the_robot():
   mirrored action."""
   import jax.numpy as jp
 
-  from mjxvine import policies
   from mjxvine.env import VineyardEnv
+  from mjxvine.evaluation import policies
 
   numpy_policy = NumpyPolicy.load(MODEL)
-  cfg, _ = runs.policy_config(MODEL)
+  cfg, _ = policy_config(MODEL)
   assert cfg.sac.mirror_average == numpy_policy.mirror_average
   env = VineyardEnv(cfg, [load_test_world(cfg.world)])
   rng = np.random.default_rng(0)
@@ -90,7 +91,7 @@ def test_the_evaluator_acts_as_the_robot():
   act = lambda policy, o: np.asarray(policy(SimpleNamespace(obs=o), None))  # a State's .obs
   np.testing.assert_allclose(act(policies.load_actor_policy(MODEL, env), obs),
                              numpy_policy.action(depth, state), atol=1e-4)
-  sym_cfg, _ = runs.policy_config(MODEL, overrides=["sac.mirror_average=true"])
+  sym_cfg, _ = policy_config(MODEL, overrides=["sac.mirror_average=true"])
   sym = policies.load_actor_policy(MODEL, VineyardEnv(sym_cfg, env.worlds))
   got = act(sym, obs)
   np.testing.assert_allclose(act(sym, VineyardEnv.mirror_obs(obs)), got * [1.0, -1.0],
@@ -99,11 +100,11 @@ def test_the_evaluator_acts_as_the_robot():
 
 @pytest.mark.slow  # a minute on 2 cores: it compiles the evaluator at the policy's image size
 def test_drives_a_straight_and_a_curved_lane_to_the_end():
-  cfg, _ = runs.policy_config(MODEL)
+  cfg, _ = policy_config(MODEL)
   world = load_test_world(cfg.world)
   assert world.lanes[0].shape == "straight" and world.lanes[3].shape == "curved"
   noise = cfg.eval.noise_factor
-  raw, _ = ev.rollout_cases(cfg, str(MODEL), [world], [(0, 1, "F", noise), (0, 4, "R", noise)])
+  raw, _ = rollout_cases(cfg, str(MODEL), [world], [(0, 1, "F", noise), (0, 4, "R", noise)])
   assert [OUTCOMES[int(o)] for o in raw["outcome"]] == [OUTCOMES[SUCCESS]] * 2
-  doc = ev.summarize(cfg, world, [(0, 1, "F", noise), (0, 4, "R", noise)], [0, 1], raw)
+  doc = summarize(cfg, world, [(0, 1, "F", noise), (0, 4, "R", noise)], [0, 1], raw)
   assert doc["overall"]["mae_m_rows"] < 0.15  # near the centre line, not along a row

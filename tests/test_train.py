@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 from mjxvine import train as train_mod
+from mjxvine.training import loop
+from mjxvine.training import programs
 from mjxvine import trainer
-from mjxvine.checkpoint import Checkpoints
+from mjxvine.rundir.checkpoints import Checkpoints
 from mjxvine.config import load_config
 from mjxvine.sac import learner_conv_impl
 
@@ -36,7 +38,7 @@ EVAL = ("train.eval_every_chunks=2", "train.eval_starts=2", "train.keep_eval_pol
 @pytest.fixture(scope="module")
 def first_run(tmp_path_factory):
   run = tmp_path_factory.mktemp("run")
-  row = train_mod.train(_cfg(80, *EVAL), run, quiet=True, evaluate_at_end=False)
+  row = loop.train(_cfg(80, *EVAL), run, quiet=True, evaluate_at_end=False)
   return run, row
 
 
@@ -78,7 +80,7 @@ def test_resume_continues_and_survives_a_corrupt_checkpoint(first_run, tmp_path,
   for f in newest.rglob("*"):
     if f.is_file() and f.stat().st_size > 0 and "ocdbt" not in f.name:
       f.write_bytes(b"garbage")
-  row = train_mod.train(_cfg(120), copy, resume=True, quiet=True, evaluate_at_end=False)
+  row = loop.train(_cfg(120), copy, resume=True, quiet=True, evaluate_at_end=False)
   err = capsys.readouterr().err
   assert "checkpoint 4 is corrupt" in err and "resumed" in err
   rows = [json.loads(l) for l in (copy / "metrics.jsonl").read_text().splitlines()]
@@ -114,9 +116,9 @@ def test_resume_with_replay_is_exact(tmp_path):
     for i, steps in enumerate(budgets):
       cfg = load_config("experiments/smoke.yaml",
                         OVERRIDES + [f"train.total_env_steps={steps}", "train.save_replay=true"])
-      train_mod.train(cfg, run, resume=i > 0, quiet=True, evaluate_at_end=False)
+      loop.train(cfg, run, resume=i > 0, quiet=True, evaluate_at_end=False)
     runs[name] = run
-  sac, init_fn, _ = train_mod.compiled_trainer(_cfg(80))
+  sac, init_fn, _ = programs.compiled_trainer(_cfg(80))
   # the trainer's towers compute as `learner_conv_impl` says (on the CPU the native tower
   # where it builds, else the shifted first conv: test_sac compares both with XLA's)
   assert sac.nets.actor.conv_impl == sac.nets.critic.conv_impl == learner_conv_impl()
@@ -128,7 +130,7 @@ def test_resume_with_replay_is_exact(tmp_path):
 
 
 def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
-  real = train_mod.compiled_trainer
+  real = programs.compiled_trainer
 
   def poisoned(cfg, seeds=1, env=None):
     sac, init_fn, chunk_fn = real(cfg, seeds, env)
@@ -144,7 +146,7 @@ def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
 
   monkeypatch.setattr(train_mod, "compiled_trainer", poisoned)
   with pytest.raises(trainer.NonFiniteError, match="non-finite parameters at env step 40"):
-    train_mod.train(_cfg(80), tmp_path / "nan", quiet=True, evaluate_at_end=False)
+    loop.train(_cfg(80), tmp_path / "nan", quiet=True, evaluate_at_end=False)
   # the checkpoint of the last good chunk is kept
   assert (tmp_path / "nan" / "checkpoints" / "1").is_dir()
   assert not (tmp_path / "nan" / "checkpoints" / "2").exists()

@@ -5,7 +5,8 @@ line that says what to install when there is no OpenGL."""
 import numpy as np
 import pytest
 
-from mjxvine import evaluate, video
+from mjxvine import evaluate
+from mjxvine.evaluation import video
 from mjxvine.config import load_config
 from mjxvine.worlds import build_models, generate_world
 

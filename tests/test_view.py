@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from brax.envs.base import State
 
-from mjxvine import evaluate, view
+from mjxvine import view
 from mjxvine.config import load_config
 from mjxvine.env import OUTCOMES, VineyardEnv, pure_pursuit
+from mjxvine.evaluation import rollout
 from mjxvine.worlds import generate_world
 
 
@@ -57,15 +58,15 @@ def _toy_policy(state, key):
 def test_drive_is_the_evaluators_stepping():
   env = ToyEnv()
   key = jax.random.PRNGKey(7)
-  steps = list(view.drive(env, _toy_policy, 3, "R", key))
-  xy, act, alive, outcome, n, _ = evaluate.rollout(env, _toy_policy, [2], [-1.0], key, 40)
+  steps = list(rollout.drive(env, _toy_policy, 3, "R", key))
+  xy, act, alive, outcome, n, _ = rollout.rollout(env, _toy_policy, [2], [-1.0], key, 40)
   assert len(steps) == int(n[0]) + 1 < 40  # the start, every step, and no more
   assert steps[0][0][1] == 4.0 and np.all(steps[0][1] == 0)  # lane 3 (0-based 2)
   np.testing.assert_allclose(np.stack([q[:2] for q, _, _ in steps[1:]]), xy[:n[0], 0])
   np.testing.assert_allclose(np.stack([a for _, a, _ in steps[1:]]), act[:n[0], 0])
   assert steps[-1][0][0] < -1.0 and OUTCOMES[steps[-1][2]] == OUTCOMES[outcome[0]] == "success"
   assert [OUTCOMES[c] for _, _, c in steps[:-1]] == ["running"] * (len(steps) - 1)
-  assert len(list(view.drive(env, _toy_policy, 1, "F", key, max_steps=3))) == 4
+  assert len(list(rollout.drive(env, _toy_policy, 1, "F", key, max_steps=3))) == 4
 
 
 @pytest.mark.slow
@@ -77,8 +78,8 @@ def test_drive_steps_as_the_evaluator_does():
   env = VineyardEnv(cfg, [world])
   policy = pure_pursuit(env)
   key = jax.random.PRNGKey(4)
-  steps = list(view.drive(env, policy, 2, "R", key, max_steps=20))
-  xy, act, alive, outcome, n, _ = evaluate.rollout(env, policy, [1], [-1.0], key, 20)
+  steps = list(rollout.drive(env, policy, 2, "R", key, max_steps=20))
+  xy, act, alive, outcome, n, _ = rollout.rollout(env, policy, [1], [-1.0], key, 20)
   assert len(steps) == int(n[0]) + 1  # the start, then every step
   np.testing.assert_allclose(np.stack([q[:2] for q, _, _ in steps[1:]]), xy[:n[0], 0],
                              atol=1e-6)

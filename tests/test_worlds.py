@@ -245,3 +245,18 @@ def test_worlds_cli_depth_at_policy_camera(tmp_path, capsys):
   with pytest.raises(SystemExit) as e:
     worlds_main(["--out", str(out), "--depth-at", "3,1"])
   assert e.value.code == 2 and "expected X,Y,YAW" in capsys.readouterr().err
+
+
+def test_mjx_backend_fields_are_where_batching_reads_them(cfg):
+  """`batch_models` reads one private attribute of MJX (`mjx.Model._impl`); this fails,
+  naming the installed MJX, as soon as a release moves it or the field it unifies."""
+  from mjxvine.worlds.batch import mjx_backend_fields
+  model = build_models([generate_world("train", 0, cfg.world)], cfg)[0]
+  impl = mjx_backend_fields(mjx.put_model(model))
+  assert np.asarray(impl.geom_rbound_hfield).shape == (model.ngeom,)
+
+  class NoBackend:
+    pass
+
+  with pytest.raises(RuntimeError, match="mujoco-mjx .*needs updating"):
+    mjx_backend_fields(NoBackend())

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from brax.envs.base import Env, State
 
-from mjxvine import train as train_mod
+from mjxvine.training import loop
 from mjxvine.wrappers import brax_env
 from mjxvine.config import load_config
-from mjxvine.protocol import TIMEOUT
+from mjxvine.episodes import TIMEOUT
 
 
 class PointToTarget(Env):
@@ -65,7 +65,7 @@ def test_sac_trainer_learns_a_brax_env(tmp_path):
       "sac.learning_rate=0.001", "train.iters_per_chunk=50", "train.total_env_steps=6000",
       "train.checkpoint_every_chunks=100"])
   env = brax_env(PointToTarget(), episode_length=20)
-  train_mod.train(cfg, tmp_path, quiet=True, env=env)
+  loop.train(cfg, tmp_path, quiet=True, env=env)
   rows = [json.loads(l) for l in (tmp_path / "metrics.jsonl").read_text().splitlines()]
   first, last = rows[0]["return_mean"], rows[-1]["return_mean"]
   # random actions: about -20 per 20-step episode; reaching x = 1 and staying: about -3

@@ -54,13 +54,27 @@ def batch_models(models: Sequence[mujoco.MjModel]) -> tuple[mjx.Model, mjx.Model
 _UNIFY_STATIC = {"geom_rbound_hfield": lambda xs: np.max(np.stack(xs), axis=0)}
 
 
+def mjx_backend_fields(model: mjx.Model):
+  """The backend's own fields of an `mjx.Model` (`mjx.Model._impl`): the one private
+  attribute of MJX that this package reads, here alone. Raises a RuntimeError naming the
+  installed MJX when it is gone or lacks a field `_unify_static` unifies (a test checks
+  it on every MJX release the suite runs with)."""
+  impl = getattr(model, "_impl", None)
+  missing = [n for n in _UNIFY_STATIC if not hasattr(impl, n)]
+  if impl is None or not hasattr(impl, "replace") or missing:
+    from importlib import metadata
+    raise RuntimeError(
+        f"mujoco-mjx {metadata.version('mujoco-mjx')}: mjx.Model's backend fields (_impl) "
+        f"{'are gone' if impl is None else 'lack ' + ', '.join(missing)}; "
+        "mjxvine.worlds.batch needs updating for this MJX")
+  return impl
+
+
 def _unify_static(puts: list[mjx.Model]) -> list[mjx.Model]:
-  impls = [p._impl for p in puts]
-  changes = {}
-  for name, unify in _UNIFY_STATIC.items():
-    if hasattr(impls[0], name):
-      changes[name] = unify([np.asarray(getattr(i, name)) for i in impls])
-  return [p.replace(_impl=p._impl.replace(**changes)) for p in puts]
+  impls = [mjx_backend_fields(p) for p in puts]
+  changes = {name: unify([np.asarray(getattr(i, name)) for i in impls])
+             for name, unify in _UNIFY_STATIC.items()}
+  return [p.replace(_impl=impl.replace(**changes)) for p, impl in zip(puts, impls)]
 
 
 def take_world(model: mjx.Model, in_axes: mjx.Model, index) -> mjx.Model:

@@ -3,7 +3,7 @@
 XLA's CPU backend runs the tower's small convolutions (8-32 channels, 3x3) and the ops
 around them (ReLUs, max pool, their gradients: a few hundred small ops a gradient step)
 far below the machine's matrix-multiply rate. `mjxvine/native/tower.cc` computes the
-whole tower (`networks.CONV_LAYERS`: 4 convs with biases and ReLUs, the max pool, the
+whole tower (`tower.CONV_LAYERS`: 4 convs with biases and ReLUs, the max pool, the
 mean) in one call, each image in one thread through every layer in buffers that stay in
 the core's cache: `tower(x, params) -> (N, F)`, and its gradient w.r.t. the params in one
 more. Equal to XLA's tower (`xla_tower`) to float32 rounding (tests/test_native_conv.py);
@@ -43,9 +43,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjxvine.networks import CONV_LAYERS, lax_conv3x3
+from mjxvine.tower import CONV_LAYERS, lax_conv3x3
 
-SOURCE = Path(__file__).parent / "native" / "tower.cc"
+SOURCE = Path(__file__).parent / "tower.cc"
 FLAGS = ("-O3", "-mavx2", "-mfma", "-shared", "-fPIC", "-std=c++17", "-w")
 AVX512 = ("avx512f", "avx512dq", "avx512bw", "avx512vl")  # the CPU flags of the second build
 AVX512_FLAGS = FLAGS + tuple(f"-m{f}" for f in AVX512)

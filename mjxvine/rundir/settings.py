@@ -17,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
-from mjxvine.checkpoint import checkpoint_item, run_dir_of
+from mjxvine.rundir.checkpoints import checkpoint_item, run_dir_of
 from mjxvine.config import Config, ConfigError, load_config, read_yaml
 from mjxvine.deploy import read_policy_file
 

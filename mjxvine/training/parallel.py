@@ -43,7 +43,7 @@ def check_divisible(mesh: Mesh, num_envs: int, batch_size: int) -> None:
 
 
 def train_state_sharding(ts, mesh: Mesh, seeds: int = 1):
-  """NamedShardings for a `mjxvine.trainer.TrainState` (or its `jax.eval_shape`): env-state
+  """NamedShardings for a `mjxvine.training.iteration.TrainState` (or its `jax.eval_shape`): env-state
   leaves split along their env axis, replay rows along their env axis, the rest
   replicated. With `seeds` > 1 every leaf has a leading seeds axis first."""
   lead = (None,) if seeds > 1 else ()

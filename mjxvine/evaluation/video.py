@@ -2,15 +2,16 @@
 follows the robot, the depth image the policy saw as an inset, and a small overlay (lane,
 v, w, offset from the centreline, outcome).
 
-    frames = render_frames(model, track)          # a `Track` from `evaluate.run_protocol`
+    frames = render_frames(model, track)          # a `Track` from `rollout.run_protocol`
     write_video(frames, mp4="run.mp4", gif="run.gif", fps=20)
     # MP4 needs imageio-ffmpeg (it bundles ffmpeg); the GIF only Pillow
 
 Headless: `choose_gl` picks EGL, then OSMesa (MUJOCO_GL) when no display is set and the
 user did not choose; without any GL it raises `RenderError`, one line saying what to
 install. Software GL (Mesa llvmpipe) is slow with shadows and reflections, so they are off.
-The conv tower reads every pixel of the depth image (edge padding, `networks.tower_pad`):
-the inset is the whole image, the size the network sees.
+The conv tower reads every pixel of the depth image (edge padding, `tower.tower_pad`):
+the inset is the whole image, the size the network sees. `write_videos` renders the
+tracks of a protocol run to files, as `evaluate --video` and `train.video` do.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import importlib
 import os
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -327,3 +329,29 @@ def count_frames(path: str | Path) -> int:
   with _child_processes():
     next(reader)  # starts ffmpeg; the metadata
   return sum(1 for _ in reader)
+
+
+# ---------------------------------------------------------------------------- runs
+def video_after_train(world) -> list[tuple[int, str]]:
+  """The runs `train.video` films on `world` (a `Vineyard`): a straight lane forward and a
+  curved one in reverse (1F and 4R of the test world)."""
+  return [(1, "F"), (min(4, len(world.lanes)), "R")]
+
+
+def write_videos(tracks, world, cfg, out: Path, *, mp4: bool = True, gif: bool = False,
+                 fps: float | None = None, size=(480, 360), say=print) -> list[Path]:
+  """Renders each `Track` of `world` (a `Vineyard`; `cfg` its `Config`) to
+  out/<lane><dir>.mp4 (and .gif); returns the files written. fps: frames per second of the
+  file (default: twice real time); size: (width, height) px."""
+  from mjxvine.worlds import build_models
+  model = build_models([world], cfg)[0]
+  fps = 2.0 / cfg.env.control_dt if fps is None else fps
+  written = []
+  for track in tracks:
+    t0 = time.time()
+    paths = {k: out / f"{track.label}.{k}" for k, on in (("mp4", mp4), ("gif", gif)) if on}
+    n = write_video(render_frames(model, track, *size), fps=fps, **paths)
+    written += list(paths.values())
+    say(f"  {' and '.join(str(p) for p in paths.values())}: {n} frames ({track.outcome}) "
+        f"in {time.time() - t0:.0f} s")
+  return written

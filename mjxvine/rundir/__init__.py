@@ -1,7 +1,16 @@
-"""What keeps a run directory consistent through whatever happens to a run: one writer at
-a time (`RunLock`), logs cut back to the checkpoint a resume starts from
-(`truncate_metrics`, `clear_events`), stops on SIGINT / SIGTERM at a chunk boundary
+"""A training run's directory, and what keeps it consistent through whatever happens to a
+run: one writer at a time (`RunLock`), stops on SIGINT / SIGTERM at a chunk boundary
 (`StopSignals`), and failed writes reported in one line (`WriteError`, `free_space`).
+
+    RUN_DIR/config.yaml        the resolved config          (`mjxvine.training.loop`)
+    RUN_DIR/metrics.jsonl, tb/ one row per member and chunk (`logs.Logger`)
+    RUN_DIR/learning_curve.png                              (`logs.plot_learning_curve`)
+    RUN_DIR/checkpoints/, best.json                         (`checkpoints`)
+    RUN_DIR/lock               held while a process trains there (`RunLock`)
+
+Modules: `checkpoints` (orbax checkpoints, the best and last policy of a run), `logs`
+(metrics.jsonl, TensorBoard, the learning curve; logs cut back to the checkpoint a resume
+starts from), `settings` (the settings a policy was trained with).
 
 The exit codes of `python -m mjxvine.train` (`EXIT_*`) live here, beside the conditions
 they report.
@@ -20,6 +29,9 @@ import socket
 import sys
 import threading
 from pathlib import Path
+
+from mjxvine import atomic
+from mjxvine.config import Config, ConfigError, changed_keys, config_hash, load_config, to_dict
 
 EXIT_USAGE = 2        # a bad argument or config, or a run directory in use
 EXIT_NON_FINITE = 3   # a loss or parameter became NaN / inf
@@ -45,6 +57,73 @@ class Interrupted(Exception):
   def __init__(self, signum: int, message: str):
     super().__init__(message)
     self.signum = signum
+
+
+class ResumeRefused(ValueError):
+  """A resume that would not continue the same run: a changed network, image or replay
+  setting, or no intact checkpoint to continue from (exit 2, one line)."""
+
+
+# ---------------------------------------------------------------------- the run's record
+RUN_RECORD = "run.json"  # the config the run started with, apart from the editable config.yaml
+# the keys a resume may change: the budget and what runs around the training
+RESUME_FREE = ("train.total_env_steps", "train.max_minutes", "train.eval_every_chunks",
+               "eval.runs_after_train")
+# what a run writes besides its logs: set aside together when it starts afresh
+RUN_OUTPUTS = ("checkpoints", "best.json", "best_members", "eval_policies", "selection.json",
+               "selected.npz", "eval")
+
+
+def write_run_record(run_dir: Path, cfg: Config) -> None:
+  """RUN_DIR/run.json: the config a run started with, and its hash."""
+  atomic.write_text(Path(run_dir) / RUN_RECORD, json.dumps(
+      {"config_hash": config_hash(cfg), "config": to_dict(cfg)}, indent=1))
+
+
+def original_config(run_dir: Path) -> Config | None:
+  """The config a run started with (RUN_DIR/run.json; None for a run without one, from
+  before the record). ResumeRefused when the record is unreadable or was edited."""
+  path = Path(run_dir) / RUN_RECORD
+  if not path.is_file():
+    return None
+  try:
+    record = json.loads(path.read_text())
+    cfg = load_config(None, base=record["config"])
+  except (OSError, ValueError, KeyError, TypeError, ConfigError) as e:
+    raise ResumeRefused(f"{path}: unreadable ({type(e).__name__}: {e}); it records the "
+                        "config the run started with") from None
+  if config_hash(cfg) != record.get("config_hash"):
+    raise ResumeRefused(f"{path} was edited (its config no longer has its recorded hash); "
+                        "it records the config the run started with")
+  return cfg
+
+
+def refuse_changes(run_dir: Path, cfg: Config, base: Config) -> None:
+  """ResumeRefused, naming the keys and their values, when a resume would change more
+  than `RESUME_FREE` (network, image, replay, ... settings: another run)."""
+  original = original_config(run_dir) or base
+  changed = [k for k in changed_keys(original, cfg) if k not in RESUME_FREE]
+  if changed:
+    value = lambda c, k: getattr(getattr(c, k.split(".")[0]), k.split(".")[1])
+    what = ", ".join(f"{k} {value(original, k)!r} -> {value(cfg, k)!r}" for k in changed)
+    raise ResumeRefused(f"--resume {run_dir}: the run started with other settings ({what}); "
+                        f"a resume may change only {', '.join(RESUME_FREE)} (restore "
+                        "config.yaml, or train a new run)")
+
+
+def set_aside(run_dir: Path) -> Path | None:
+  """Moves what a run wrote besides its logs (`RUN_OUTPUTS`) to RUN_DIR/previous-<time>/,
+  for a run that starts afresh in its directory: nothing is lost, and no old best
+  checkpoint sits beside the new networks. Returns that directory (None: nothing to move)."""
+  run_dir = Path(run_dir)
+  present = [run_dir / n for n in RUN_OUTPUTS if (run_dir / n).exists()]
+  if not present:
+    return None
+  target = run_dir / f"previous-{datetime.datetime.now():%Y%m%d-%H%M%S}"
+  target.mkdir()
+  for p in present:
+    shutil.move(str(p), str(target / p.name))
+  return target
 
 
 def free_space(path: Path) -> str:
@@ -98,12 +177,20 @@ class RunLock:
     self.fd: int | None = None
 
   def acquire(self) -> "RunLock":
-    fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-      fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+    while True:
+      fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+      try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+      except BlockingIOError:
+        os.close(fd)
+        raise RunDirBusy(busy_message(self.path.parent)) from None
+      # `release` removes the file: a lock taken on a file removed meanwhile is no lock
+      try:
+        if os.stat(self.path).st_ino == os.fstat(fd).st_ino:
+          break
+      except FileNotFoundError:
+        pass
       os.close(fd)
-      raise RunDirBusy(busy_message(self.path.parent)) from None
     os.ftruncate(fd, 0)
     os.write(fd, (json.dumps({
         "pid": os.getpid(), "host": socket.gethostname(),
@@ -112,7 +199,13 @@ class RunLock:
     return self
 
   def release(self) -> None:
+    """Removes the lock file (while still holding it: a run that ended leaves none) and
+    unlocks."""
     if self.fd is not None:
+      try:
+        self.path.unlink()
+      except FileNotFoundError:
+        pass
       fcntl.flock(self.fd, fcntl.LOCK_UN)
       os.close(self.fd)
       self.fd = None
@@ -150,35 +243,6 @@ def busy_message(run_dir: Path) -> str:
   who = (f"process {holder.get('pid', '?')} on {holder.get('host', '?')} (since "
          f"{holder.get('since', '?')})")
   return f"{run_dir} is in use by {who}: wait for it to end, or stop it first"
-
-
-# ---------------------------------------------------------------------- the logs
-def truncate_metrics(path: Path, env_steps: int) -> int:
-  """Keeps the rows of metrics.jsonl at `path` up to `env_steps` (those the restored
-  checkpoint has seen; 0: none), rewriting the file atomically. Returns the rows dropped."""
-  if not path.is_file():
-    return 0
-  lines = [l for l in path.read_text().splitlines() if l.strip()]
-  keep = []
-  for line in lines:
-    try:
-      row = json.loads(line)
-    except json.JSONDecodeError:
-      continue  # a line cut short by a kill
-    if row.get("env_steps", 0) <= env_steps:
-      keep.append(line)
-  if len(keep) == len(lines):
-    return 0
-  tmp = path.with_suffix(".jsonl.tmp")
-  tmp.write_text("".join(l + "\n" for l in keep))
-  os.replace(tmp, path)
-  return len(lines) - len(keep)
-
-
-def clear_events(tb_dir: Path) -> None:
-  """Removes the TensorBoard event files of a run that starts afresh in the same dir."""
-  for f in Path(tb_dir).glob("events.out.tfevents.*"):
-    f.unlink()
 
 
 # ---------------------------------------------------------------------- signals

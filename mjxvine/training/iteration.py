@@ -1,4 +1,4 @@
-"""The trainer: SAC on any batched env (`mjxvine.protocol.TrainEnv`), as pure functions.
+"""The trainer: SAC on any batched env (`mjxvine.episodes.TrainEnv`), as pure functions.
 
 `make_trainer(cfg, env)` builds `init(key) -> TrainState` and `chunk(TrainState) ->
 (TrainState, metrics)`: one training iteration (N env steps with exploration, one replay
@@ -6,7 +6,7 @@ insert, G gradient steps once `learning`) is one jit-compiled function, and a ch
 `train.iters_per_chunk` of them under `lax.scan` (on the CPU backend a host loop of the
 jitted pieces, see `scan_chunks`). `compiled(cfg, seeds, env)` jits them once per process,
 vmapped over the members of a multi-seed or sweep run (`sweep_members`, `init_members`),
-with envs and replay split over the devices (`mjxvine.parallel`). The run around it (CLI,
+with envs and replay split over the devices (`mjxvine.training.parallel`). The run around it (CLI,
 logs, plots, checkpoints, evaluations, resume) is `mjxvine.train`.
 """
 
@@ -24,11 +24,11 @@ import jax.numpy as jp
 import numpy as np
 
 from mjxvine import networks as nw
-from mjxvine import parallel
+from mjxvine.training import parallel
 from mjxvine import sac as sac_lib
 from mjxvine.config import (Config, EvalConfig, TrainConfig, depth_input_scale, parse_sweep,
                             replace)
-from mjxvine.protocol import PHYSICS, REWARD_PREFIX, SUCCESS, TIMEOUT
+from mjxvine.episodes import PHYSICS, REWARD_PREFIX, SUCCESS, TIMEOUT
 
 
 class TrainState(flax.struct.PyTreeNode):
@@ -71,16 +71,10 @@ class NonFiniteError(RuntimeError):
   """A loss or a parameter became NaN or infinite."""
 
 
-def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
-  """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
-  collect, learn_step, learn_steps, summarize): a chunk is `train.iters_per_chunk`
-  iterations, each `collect` (env step, replay insert) then, once `learning`, G =
-  sac.grad_steps_per_iter gradient steps (`learn_steps`, or G `learn_step`s); `chunk`
-  runs them on device, the host path calls the pieces.
-  `shard_batch`: see `mjxvine.sac.make_sac` (data parallelism over devices)."""
-  n = cfg.env.num_envs
-  # The action box comes from the env: the vineyard's [0, v_max] x [-w_max, w_max], or
-  # [-1, 1] for a brax env behind `wrappers.brax_env`.
+def make_learner(cfg: Config, env, shard_batch=lambda batch: batch) -> sac_lib.SAC:
+  """SAC (`mjxvine.sac.make_sac`) of the config's networks on the env's action box (the
+  vineyard's [0, v_max] x [-w_max, w_max], or [-1, 1] for a brax env behind
+  `wrappers.brax_env`), with the env's mirror maps when it has them."""
   nets = nw.make_networks(env.action_low, env.action_high, hidden=cfg.sac.hidden,
                           conv_features=cfg.sac.conv_features,
                           depth_scale=depth_input_scale(cfg),
@@ -88,55 +82,72 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
                           compute_dtype=cfg.sac.compute_dtype,
                           conv_impl=sac_lib.learner_conv_impl(cfg.sac.conv_impl))
   mirror = ((env.mirror_obs, env.mirror_action) if hasattr(env, "mirror_obs") else None)
-  sac = sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch, mirror=mirror)
-  warmup = cfg.sac.warmup_steps
+  return sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch, mirror=mirror)
 
-  def init(key: jax.Array) -> TrainState:
-    k_env, k_learner, k_run = jax.random.split(key, 3)
-    env_state = env.reset_batch(k_env, n)
-    learner = sac.init(k_learner, env_state.obs)
-    buffer = sac_lib.init_buffer(env_state.obs, env.action_size, cfg.sac.buffer_size,
-                                 cfg.camera.max_depth_m,
-                                 depth_dtype=jp.dtype(cfg.sac.replay_depth_dtype))
-    z, zf = jp.zeros((), jp.int32), jp.zeros((), jp.float32)
-    return TrainState(learner=learner, buffer=buffer, env_state=env_state, key=k_run,
-                      env_steps=z, episodes=z, budget=zf, log_episodes=z, log_return=zf,
-                      log_success=z, log_timeout=z, log_speed=zf,
-                      log_terms={k: zf for k in _reward_terms(env_state)})
 
-  def collect(ts: TrainState):
-    """One env step of the N envs with exploration, inserted into the replay. Returns the
-    new state, the key of this iteration's gradient steps and whether they are due."""
-    key, k_act, k_explore, k_update = jax.random.split(ts.key, 4)
-    obs = ts.env_state.obs
-    policy_action = sac.act(ts.learner.actor_params, obs, k_act)
-    in_warmup = ts.env_steps < warmup
-    eps = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
-    action = sac_lib.explore_action(k_explore, policy_action, eps, env.action_low,
-                                    env.action_high, in_warmup)
-    env_state, final_obs = env.step_batch(ts.env_state, action)
-    done = env_state.done > 0
-    truncated = done & (env_state.info["truncation"] > 0)
-    outcome = env_state.info["last_outcome"]
-    # A physics reset's successor is the restored old state: nothing to learn from.
-    weight = jp.where(done & (outcome == PHYSICS), 0.0, 1.0)
-    tr = sac_lib.Transition(obs=obs, action=action,
-                            reward=env_state.reward * cfg.sac.reward_scale,
-                            terminal=(done & ~truncated).astype(jp.float32),
-                            truncated=truncated.astype(jp.float32), next_obs=final_obs,
-                            weight=weight)
-    buffer = sac_lib.insert(ts.buffer, tr)
-    learn = learning(cfg, ts.env_steps, buffer.rows_written)
-    ts = ts.replace(
-        buffer=buffer, env_state=env_state, key=key,
-        env_steps=ts.env_steps + n, episodes=ts.episodes + done.sum(),
-        log_episodes=ts.log_episodes + done.sum(),
-        log_return=ts.log_return + jp.sum(jp.where(done, env_state.info["last_return"], 0.0)),
-        log_success=ts.log_success + jp.sum(done & (outcome == SUCCESS)),
-        log_timeout=ts.log_timeout + jp.sum(done & (outcome == TIMEOUT)),
-        log_speed=ts.log_speed + jp.sum(action[:, 0]),
-        log_terms={k: v + jp.sum(env_state.metrics[k]) for k, v in ts.log_terms.items()})
-    return ts, k_update, learn
+def init_state(cfg: Config, env, sac, key: jax.Array) -> TrainState:
+  """A fresh TrainState of one member: N = env.num_envs envs reset, new networks, an
+  empty replay, zero counters."""
+  n = cfg.env.num_envs
+  k_env, k_learner, k_run = jax.random.split(key, 3)
+  env_state = env.reset_batch(k_env, n)
+  learner = sac.init(k_learner, env_state.obs)
+  buffer = sac_lib.init_buffer(env_state.obs, env.action_size, cfg.sac.buffer_size,
+                               cfg.camera.max_depth_m,
+                               depth_dtype=jp.dtype(cfg.sac.replay_depth_dtype))
+  z, zf = jp.zeros((), jp.int32), jp.zeros((), jp.float32)
+  return TrainState(learner=learner, buffer=buffer, env_state=env_state, key=k_run,
+                    env_steps=z, episodes=z, budget=zf, log_episodes=z, log_return=zf,
+                    log_success=z, log_timeout=z, log_speed=zf,
+                    log_terms={k: zf for k in _reward_terms(env_state)})
+
+
+def collect_step(cfg: Config, env, sac, ts: TrainState):
+  """One env step of the N envs with exploration, inserted into the replay. Returns the
+  new state, the key of this iteration's gradient steps and whether they are due."""
+  n = cfg.env.num_envs
+  key, k_act, k_explore, k_update = jax.random.split(ts.key, 4)
+  obs = ts.env_state.obs
+  policy_action = sac.act(ts.learner.actor_params, obs, k_act)
+  in_warmup = ts.env_steps < cfg.sac.warmup_steps
+  eps = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
+  action = sac_lib.explore_action(k_explore, policy_action, eps, env.action_low,
+                                  env.action_high, in_warmup)
+  env_state, final_obs = env.step_batch(ts.env_state, action)
+  done = env_state.done > 0
+  truncated = done & (env_state.info["truncation"] > 0)
+  outcome = env_state.info["last_outcome"]
+  # A physics reset's successor is the restored old state: nothing to learn from.
+  weight = jp.where(done & (outcome == PHYSICS), 0.0, 1.0)
+  tr = sac_lib.Transition(obs=obs, action=action,
+                          reward=env_state.reward * cfg.sac.reward_scale,
+                          terminal=(done & ~truncated).astype(jp.float32),
+                          truncated=truncated.astype(jp.float32), next_obs=final_obs,
+                          weight=weight)
+  buffer = sac_lib.insert(ts.buffer, tr)
+  learn = learning(cfg, ts.env_steps, buffer.rows_written)
+  ts = ts.replace(
+      buffer=buffer, env_state=env_state, key=key,
+      env_steps=ts.env_steps + n, episodes=ts.episodes + done.sum(),
+      log_episodes=ts.log_episodes + done.sum(),
+      log_return=ts.log_return + jp.sum(jp.where(done, env_state.info["last_return"], 0.0)),
+      log_success=ts.log_success + jp.sum(done & (outcome == SUCCESS)),
+      log_timeout=ts.log_timeout + jp.sum(done & (outcome == TIMEOUT)),
+      log_speed=ts.log_speed + jp.sum(action[:, 0]),
+      log_terms={k: v + jp.sum(env_state.metrics[k]) for k, v in ts.log_terms.items()})
+  return ts, k_update, learn
+
+
+def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
+  """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
+  collect, learn_step, learn_steps, summarize): a chunk is `train.iters_per_chunk`
+  iterations, each `collect` (env step, replay insert) then, once `learning`, G =
+  sac.grad_steps_per_iter gradient steps (`learn_steps`, or G `learn_step`s); `chunk`
+  runs them on device, the host path calls the pieces.
+  `shard_batch`: see `mjxvine.sac.make_sac` (data parallelism over devices)."""
+  sac = make_learner(cfg, env, shard_batch)
+  init = functools.partial(init_state, cfg, env, sac)
+  collect = functools.partial(collect_step, cfg, env, sac)
 
   def lr_scale(ts: TrainState) -> jax.Array:
     """This iteration's learning-rate factor (`sac.learning_rate_scale`)."""

@@ -6,8 +6,8 @@
 
 `Checkpoints` writes them and restores a whole TrainState (the trainer's resume);
 `checkpoint_item` picks the step a run's "best" or "last" policy is read from and
-`restore_actor_params` reads one member's actor params without a template (`mjxvine.export`,
-`mjxvine.policies`, `mjxvine.evaluate`).
+`restore_actor_params` reads one member's actor params without a template (`python -m mjxvine.export`,
+`mjxvine.evaluation.policies`).
 
 jax and orbax are imported where they are used, so that the export CLI's .npz -> ONNX
 conversion and evaluate's argument checks do not load them.
@@ -21,6 +21,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from mjxvine import atomic
 
 WHICH = ("best", "last")  # which checkpoint of a run: see `checkpoint_item`
 
@@ -75,7 +77,7 @@ class Checkpoints:
     """Keeps `ts` as the best checkpoint, with its evaluation `scores`."""
     self._save(self.best_manager, step, ts, f"best checkpoint {step}", force=True)
     if self.primary:
-      _write_atomic(self.best_json, json.dumps({"chunk": step, **scores}))
+      atomic.write_text(self.best_json, json.dumps({"chunk": step, **scores}))
 
   def _save(self, manager, step: int, ts, what: str, **kw) -> None:
     from mjxvine.rundir import write_failure
@@ -96,8 +98,11 @@ class Checkpoints:
     return json.loads(self.best_json.read_text())
 
   def restore(self, template, best: bool = False):
-    """(step, TrainState) of the latest good checkpoint (or the best one), restored onto
-    `template` (a fresh TrainState of the same config), or None."""
+    """(step, TrainState) of the newest intact checkpoint (or the best one), restored onto
+    `template` (a fresh TrainState of the same config), or None when there is none.
+    A step that cannot be restored is said in one line and, by the run's one writer,
+    moved aside to RUN_DIR/checkpoints-broken/ (`move_aside`), so the next save does not
+    sit beside it."""
     import jax
     manager = self.best_manager if best else self.manager
     abstract = jax.tree.map(
@@ -107,11 +112,38 @@ class Checkpoints:
       try:
         payload = manager.restore(step, args=self.ocp.args.StandardRestore(abstract))
       except Exception as e:  # noqa: BLE001 - any failure means this step is unusable
-        print(f"checkpoint {step} is corrupt or partial ({type(e).__name__}: "
-              f"{str(e).splitlines()[0][:120]}); trying the previous one", file=sys.stderr)
+        what = "best checkpoint" if best else "checkpoint"
+        moved = self.move_aside(manager, step) if self.primary else None
+        print(f"{what} {step} is corrupt or partial ({type(e).__name__}: "
+              f"{_first_line(e)})" + (f"; moved to {moved}" if moved else "")
+              + ("; trying the previous one" if not best else ""), file=sys.stderr)
         continue
       return step, self._unpayload(payload, template)
     return None
+
+  def move_aside(self, manager, step: int) -> Path | None:
+    """Moves a broken step out of its manager's directory (to
+    RUN_DIR/checkpoints-broken/[best-]<step>), where nothing reads it but a person;
+    returns where, or None when it could not be moved."""
+    import shutil
+    source = Path(manager.directory) / str(step)
+    aside = self.dir.parent / "checkpoints-broken"
+    target = aside / (f"best-{step}" if manager is self.best_manager else str(step))
+    try:
+      aside.mkdir(exist_ok=True)
+      if target.exists():
+        shutil.rmtree(target)
+      shutil.move(str(source), str(target))
+      manager.reload()
+    except OSError:
+      return None
+    return target
+
+
+def _first_line(error: BaseException) -> str:
+  """An error's first line, whole (orbax's messages are long; their first line says it)."""
+  lines = [l for l in str(error).splitlines() if l.strip()]
+  return lines[0].strip() if lines else type(error).__name__
 
 
 def remove_partial_steps(manager_dir: Path) -> list[Path]:
@@ -125,12 +157,6 @@ def remove_partial_steps(manager_dir: Path) -> list[Path]:
       shutil.rmtree(tmp, ignore_errors=True)
       removed.append(tmp)
   return removed
-
-
-def _write_atomic(path: Path, text: str) -> None:
-  tmp = path.with_name(path.name + ".tmp")
-  tmp.write_text(text)
-  tmp.replace(path)
 
 
 class _orbax_quiet:

@@ -1,7 +1,7 @@
 """Deterministic evaluation from fresh random starts of the training pool, forward and
 reverse counted apart: the quick check that a training run runs during and after learning.
 
-The paper's protocol (`mjxvine.evaluate`) drives the test world from each lane's start;
+The paper's protocol (`rollout.run_protocol`) drives the test world from each lane's start;
 this drives `starts` episodes per travel direction from the env's own random starts
 (random pool world, lane, point along it, lateral and yaw jitter), with the policy's
 deterministic action, and reports per direction the success rate and the mean absolute

@@ -1,0 +1,64 @@
+"""The best checkpoint, chosen on validation worlds after training.
+
+  python -m mjxvine.choose RUN_DIR            # what the trainer does at its end
+  python -m mjxvine.choose RUN_DIR --set train.select_candidates=6
+
+(`python -m mjxvine.select`, its old name, still answers.)
+
+The fresh-start evaluations during training (`mjxvine.evaluation.starts`, 2 x
+train.eval_starts starts on the training rows) are a noisy yardstick: two checkpoints that
+score alike there can differ from 0 to 100 % on test-kind worlds. With
+`train.select_worlds` > 0 the trainer keeps every evaluated policy
+(RUN/eval_policies/env<steps>.npz) and, after training, drives the
+`train.select_candidates` best of them by the fresh-start rule
+(`choice.fresh_start_score`: the weaker direction's success, then the lower MAE) through a
+validation protocol:
+
+- every lane-direction of `train.select_worlds` validation worlds, test-kind worlds of seeds
+  `train.select_world_seed` (100 or more: test tables use seeds below 100) and up,
+  `train.select_runs` runs each, at `eval.noise_factor`;
+- rows 1F and 4F of the first validation world at each of `train.select_noise_factors`,
+  3 runs each (the noise test's rows and runs).
+
+One batched rollout per candidate (`rollout.rollout_cases`, rollout seed 0: the same
+cases and keys for every candidate). The candidate with the most successes over all of
+it is chosen, ties broken by the lower MAE (the mean over the validation worlds of each
+world's mean of rows). RUN/selection.json records every candidate's scores and the choice,
+and is written after each candidate, so an interrupted selection resumes; RUN/selected.npz
+is the chosen policy, which a run dir's "best" policy means from then on
+(`checkpoints.selected_policy`: `evaluate --policy RUN`, `export --checkpoint RUN`).
+No test world is driven. The library is `mjxvine.evaluation.choice`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from mjxvine.config import ConfigError, add_config_args, load_config
+
+
+def main(argv=None, prog: str = "python -m mjxvine.choose") -> int:
+  p = argparse.ArgumentParser(prog=prog, description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("run_dir", type=Path)
+  add_config_args(p)
+  args = p.parse_args(argv)
+  try:
+    if not (args.run_dir / "config.yaml").is_file():
+      raise FileNotFoundError(f"{args.run_dir}: no config.yaml (not a run directory)")
+    cfg = load_config(args.config or str(args.run_dir / "config.yaml"), args.overrides)
+    from mjxvine.evaluation import choice  # (jax and the env: after the cheap checks)
+    choice.select(cfg, args.run_dir)
+  except ConfigError as e:
+    print(f"config error: {e}", file=sys.stderr)
+    return 2
+  except (FileNotFoundError, ValueError) as e:
+    print(f"select error: {e}", file=sys.stderr)
+    return 2
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

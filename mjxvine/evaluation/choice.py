@@ -1,0 +1,191 @@
+"""The best checkpoint, chosen on validation worlds after training (`python -m
+mjxvine.choose`, docs in its module), and the ranking rules of evaluated policies.
+
+Two orders, higher is better:
+  * `fresh_start_score`: the trainer's fresh-start evaluations (`starts`): the weaker
+    direction's success, then the lower MAE (checkpoints/best, each member's best, the
+    candidates here);
+  * `rank`: validated candidates: the successes over the validation protocol, then the
+    lower MAE.
+
+The validation protocol: every lane-direction of `train.select_worlds` test-kind worlds of
+seeds `train.select_world_seed` and up, `train.select_runs` runs each, at
+`eval.noise_factor`; and the noise test's rows (`paper.NOISE_LANES`, `paper.NOISE_RUNS`
+runs) of the first validation world at each of `train.select_noise_factors`. One batched
+rollout per candidate, rollout seed 0: the same cases and keys for every candidate.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from mjxvine.atomic import write_text
+from mjxvine.config import Config
+from mjxvine.evaluation import paper
+from mjxvine.evaluation.metrics import summarize
+from mjxvine.evaluation.rollout import Cases, all_lanes, rollout_cases
+from mjxvine.formatting import fmt
+from mjxvine.rundir.checkpoints import SELECTED_POLICY, SELECTION_JSON
+
+
+# ---------------------------------------------------------------------------- ranking rules
+def fresh_start_score(scores: dict) -> tuple:
+  """Order of fresh-start evaluations (`eval_success_forward`, `eval_success_reverse`,
+  `eval_mae_m` of a metrics row) for the best checkpoint, higher is better: the weaker
+  direction's success, then the lower MAE."""
+  return (min(scores["eval_success_forward"], scores["eval_success_reverse"]),
+          -scores["eval_mae_m"])
+
+
+def rank(scores: dict) -> tuple:
+  """Order of validated candidates (`score_policy`), higher is better: the successes, then
+  the lower MAE (no MAE ranks last)."""
+  mae = scores["mae_m"]
+  return scores["success"], -(mae if mae is not None else float("inf"))
+
+
+# ---------------------------------------------------------------------------- a run's policies
+def policy_file(run_dir: Path, env_steps: int) -> Path:
+  """RUN/eval_policies/env<steps>.npz: the policy evaluated at `env_steps`."""
+  return Path(run_dir) / "eval_policies" / f"env{env_steps}.npz"
+
+
+def kept_policies(run_dir: Path) -> dict[int, Path]:
+  """{env steps: policy file} of RUN/eval_policies/."""
+  names = ((re.fullmatch(r"env(\d+)", f.stem), f)
+           for f in Path(run_dir).glob("eval_policies/env*.npz"))
+  return {int(m.group(1)): f for m, f in names if m}
+
+
+def trainer_evaluations(run_dir: Path) -> dict[int, dict]:
+  """{env steps: the eval_* values} of member 0's fresh-start evaluations, from
+  RUN/metrics.jsonl (the last row of a step wins: a resumed run rewrites its tail)."""
+  out = {}
+  path = Path(run_dir) / "metrics.jsonl"
+  for line in path.read_text().splitlines() if path.is_file() else ():
+    row = json.loads(line)
+    if row.get("member", 0) == 0 and "eval_success_forward" in row:
+      out[int(row["env_steps"])] = {k: row[k] for k in row if k.startswith("eval_")}
+  return out
+
+
+def candidates(evaluations: dict[int, dict], kept: set[int], k: int) -> list[int]:
+  """The env steps of the `k` best evaluations by `fresh_start_score` among those whose
+  policy was kept, best first (the earlier of equal scores first, as the trainer keeps
+  the first of equals as checkpoints/best)."""
+  steps = sorted(s for s in evaluations if s in kept)
+  return sorted(steps, key=lambda s: fresh_start_score(evaluations[s]), reverse=True)[:k]
+
+
+# ---------------------------------------------------------------------------- validation
+def validation_worlds(cfg: Config) -> list:
+  """The `train.select_worlds` validation worlds (test-kind, seeds select_world_seed...)."""
+  from mjxvine.worlds import make_world
+  first = cfg.train.select_world_seed
+  return [make_world(str(first + i), cfg.world) for i in range(cfg.train.select_worlds)]
+
+
+def validation_cases(worlds: list, runs: int, noise0: float, noise_factors) -> tuple:
+  """(cases, tables, noise): the `rollout.Cases` of the validation protocol; tables[i]
+  the case indices of world i's table, noise[k] those of the noise test's rows of world 0
+  at noise factor k (a float)."""
+  cases = Cases()
+  tables = [cases.add(wi, all_lanes(world), noise0, runs) for wi, world in enumerate(worlds)]
+  noise = {float(k): cases.add(0, paper.noise_rows(), float(k), paper.NOISE_RUNS)
+           for k in noise_factors}
+  return cases, tables, noise
+
+
+def score_policy(cfg: Config, path: Path, worlds: list, runs: int,
+                 noise_factors=()) -> dict:
+  """One policy file's validation scores: {"worlds": {seed: {success, episodes,
+  mae_m_rows, rows_status, failed}}, "noise": {factor: {"1F": successes, "4F": ...}},
+  "success", "episodes" (over all of it), "mae_m" (the mean of the worlds' mean-of-rows
+  MAE; None when no world has one), "wall_s"}."""
+  cases, tables, noise = validation_cases(worlds, runs, cfg.eval.noise_factor, noise_factors)
+  raw, _ = rollout_cases(cfg, str(path), worlds, cases)
+  out = {"worlds": {}, "noise": {}}
+  for world, idx in zip(worlds, tables):
+    doc = summarize(cfg, world, cases, idx, raw)
+    out["worlds"][str(world.seed)] = {
+        "success": int(sum(r["success"] for r in doc["rows"])), "episodes": len(idx),
+        "mae_m_rows": doc["overall"]["mae_m_rows"],
+        "rows_status": doc["overall"]["rows_status"],
+        "failed": [f"{r['lane']}{r['direction']}" for r in doc["rows"]
+                   if r["success"] < r["runs"]]}
+  for k, idx in noise.items():
+    doc = summarize(cfg, worlds[0], cases, idx, raw)
+    out["noise"][str(k)] = {f"{r['lane']}F": int(r["success"]) for r in doc["rows"]}
+  maes = [w["mae_m_rows"] for w in out["worlds"].values() if w["mae_m_rows"] is not None]
+  out["success"] = (sum(w["success"] for w in out["worlds"].values())
+                    + sum(sum(v.values()) for v in out["noise"].values()))
+  out["episodes"] = len(cases)
+  out["mae_m"] = float(np.mean(maes)) if maes else None
+  out["wall_s"] = raw["wall_s"]
+  return out
+
+
+def protocol(cfg: Config) -> dict:
+  """What the validation scores depend on besides the policy: a selection.json with other
+  values is scored again."""
+  t = cfg.train
+  return {"worlds": [t.select_world_seed + i for i in range(t.select_worlds)],
+          "runs": t.select_runs, "noise_factor": cfg.eval.noise_factor,
+          "noise_factors": list(t.select_noise_factors),
+          "noise_lanes": list(paper.NOISE_LANES), "noise_runs": paper.NOISE_RUNS,
+          "max_steps": cfg.eval.max_steps, "rollout_seed": 0}
+
+
+# ---------------------------------------------------------------------------- the choice
+def select(cfg: Config, run_dir: Path, say=print) -> dict:
+  """Chooses the run's best policy on the validation worlds (the module's docstring);
+  writes RUN/selection.json and RUN/selected.npz and returns the selection record:
+  {"protocol", "candidates": [{"env_steps", "trainer": eval_* values, "validation":
+  `score_policy`}, best first by `fresh_start_score`], "selected": env steps}."""
+  run_dir = Path(run_dir)
+  if cfg.train.select_worlds < 1:
+    raise ValueError(f"{run_dir}: train.select_worlds = 0 in its config: give --set "
+                     "train.select_worlds=N (N validation worlds)")
+  evaluations, kept = trainer_evaluations(run_dir), kept_policies(run_dir)
+  chosen = candidates(evaluations, set(kept), cfg.train.select_candidates)
+  if not chosen:
+    raise FileNotFoundError(f"{run_dir}: no evaluated policy to choose from (RUN/"
+                            "eval_policies/env<steps>.npz beside the evaluations of "
+                            "metrics.jsonl)")
+  record_path = run_dir / SELECTION_JSON
+  old = json.loads(record_path.read_text()) if record_path.is_file() else {}
+  record = {"protocol": protocol(cfg), "candidates": [], "selected": None}
+  done = ({c["env_steps"]: c["validation"] for c in old.get("candidates", [])}
+          if old.get("protocol") == record["protocol"] else {})
+  (run_dir / SELECTED_POLICY).unlink(missing_ok=True)  # an earlier choice, until this one
+  worlds = validation_worlds(cfg)
+  say(f"choosing the best of {len(chosen)} evaluated policies ({', '.join(map(str, chosen))} "
+      f"env steps) on validation worlds {record['protocol']['worlds']}...")
+  for steps in chosen:
+    scores = done.get(steps) or score_policy(cfg, kept[steps], worlds, cfg.train.select_runs,
+                                             cfg.train.select_noise_factors)
+    record["candidates"].append({"env_steps": steps, "trainer": evaluations[steps],
+                                 "validation": scores})
+    write_text(record_path, json.dumps(record, indent=1))  # resumable after each candidate
+    say(f"  {steps:>8} env steps: {summary(scores)}")
+  best = max(record["candidates"], key=lambda c: rank(c["validation"]))  # first of equals
+  record["selected"] = best["env_steps"]
+  shutil.copyfile(kept[best["env_steps"]], run_dir / SELECTED_POLICY)
+  write_text(record_path, json.dumps(record, indent=1))
+  say(f"selected the policy of {best['env_steps']} env steps: {run_dir / SELECTED_POLICY}")
+  return record
+
+
+def summary(scores: dict) -> str:
+  """One line: successes per validation world and at each noise factor, and the MAE."""
+  worlds = ", ".join(f"world {s} {w['success']}/{w['episodes']}"
+                     for s, w in scores["worlds"].items())
+  noise = ", ".join(f"noise {k} {sum(v.values())}/{paper.NOISE_RUNS * len(paper.NOISE_LANES)}"
+                    for k, v in scores["noise"].items())
+  mae = "-" if scores["mae_m"] is None else f"{fmt(scores['mae_m'])} m"
+  return f"{scores['success']}/{scores['episodes']} ({worlds}; {noise}), MAE {mae}"

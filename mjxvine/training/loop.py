@@ -1,0 +1,323 @@
+"""`train(cfg, run_dir)`: the host loop around the compiled chunks of training iterations.
+
+The loop trains chunk after chunk (`mjxvine.training.iteration`) and hands each to its
+hooks (`mjxvine.training.hooks`: fresh-start evaluations and the best checkpoint, logs,
+checkpoints), checks for non-finite values and stop signals between chunks, and at the
+end closes the logs, draws the learning curve, chooses the policy on validation worlds
+(`train.select_worlds`, `mjxvine.evaluation.choice`) and writes the closing report
+(`mjxvine.training.report`). `train.num_seeds` seeds times the `train.sweep` grid train at
+once (vmap); envs and replay are split over the devices (`mjxvine.training.parallel`).
+
+Run directory: config.yaml (resolved), metrics.jsonl, TensorBoard events (tb/),
+checkpoints/ (orbax, `mjxvine.rundir.checkpoints`), learning_curve.png, eval/ (the final
+evaluation report), lock (held while a process trains there). Signals, the lock, write
+failures and the exit codes: `mjxvine.rundir`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jp
+import numpy as np
+
+from mjxvine import sac as sac_lib
+from mjxvine import atomic
+from mjxvine.config import Config, load_config, to_yaml
+from mjxvine.rundir import (Interrupted, ResumeRefused, RunDirBusy, RunLock, StopSignals,
+                            original_config, refuse_changes, set_aside, write_run_record)
+from mjxvine.rundir.checkpoints import Checkpoints
+from mjxvine.rundir.logs import Logger, clear_events, plot_learning_curve, truncate_metrics
+from mjxvine.training import distributed, hooks, report
+from mjxvine.training.iteration import NonFiniteError, compile_key, init_members, sweep_members
+from mjxvine.training.programs import compiled_trainer, default_env, start_evaluator
+
+
+def _say(quiet: bool) -> Callable:
+  return (lambda *a, **k: None) if quiet else functools.partial(print, file=sys.stderr,
+                                                                 flush=True)
+
+
+def last_row(run_dir: Path) -> dict:
+  """The last row of RUN_DIR/metrics.jsonl ({} if none): that of the last member."""
+  lines = (run_dir / "metrics.jsonl").read_text().splitlines() \
+      if (run_dir / "metrics.jsonl").is_file() else []
+  return json.loads(lines[-1]) if lines else {}
+
+
+def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: bool = True,
+          quiet: bool = False, env=None, restart: bool = False) -> dict:
+  """Trains (or resumes) a run; returns the final log row of member 0 (of a run found
+  complete on resume: the last row of its metrics.jsonl, `last_row`). Trains
+  `train.num_seeds` seeds times the `train.sweep` grid at once (vmap). `env` defaults to
+  the config's vineyard pool; another `episodes.TrainEnv` (e.g. `wrappers.brax_env(...)`)
+  trains the same way, without the vineyard evaluations.
+
+  With the vineyard env, every `train.eval_every_chunks` chunks and at the end (with
+  `evaluate_at_end` or eval_every_chunks > 0) the deterministic policy drives
+  `train.eval_starts` fresh starts per direction (`hooks.FreshStartEvaluation`); the best
+  of these evaluations (member 0) is kept as checkpoints/best (and, with several members,
+  each member's own best actor as best_members/member<k>.npz), and the closing report
+  (`evaluate_at_end`) evaluates that policy on the test world.
+
+  A resume continues the same run or refuses (`rundir.ResumeRefused`): a config that
+  differs from the one the run started with (RUN_DIR/run.json) in more than
+  `rundir.RESUME_FREE`, or checkpoints none of which can be restored (broken steps are
+  moved to RUN_DIR/checkpoints-broken/; the newest intact one is used, else the best);
+  `restart` then starts the run afresh, its old outputs set aside (`rundir.set_aside`).
+
+  The run holds RUN_DIR's lock throughout (`rundir.RunLock`; `rundir.RunDirBusy` if
+  another process has it). A resume cuts metrics.jsonl and the TensorBoard events back to
+  the restored checkpoint. SIGINT / SIGTERM end the current chunk, write a checkpoint and
+  raise `rundir.Interrupted`; a failed checkpoint write raises `rundir.WriteError`. With
+  several processes (`jax.distributed`) every process calls this; all of them enter the
+  same collectives, process 0 alone writes logs and prints.
+  """
+  primary = jax.process_index() == 0
+  run_dir.mkdir(parents=True, exist_ok=True)
+  lock, busy = None, None
+  if primary:
+    try:
+      lock = RunLock(run_dir).acquire()
+    except RunDirBusy as e:
+      busy = e
+  if distributed.max_over_processes(int(busy is not None)):  # every process refuses, or none
+    raise busy or RunDirBusy(f"{run_dir} is in use (process 0 holds no lock)")
+  try:
+    return _train(cfg, run_dir, resume, evaluate_at_end, quiet or not primary, env, primary,
+                  restart)
+  finally:
+    if lock is not None:
+      lock.release()
+
+
+@dataclasses.dataclass
+class _Run:
+  """A run set up to train: its compiled programs, state and where it starts."""
+  members: list[dict]
+  sac: Any
+  chunk_fn: Callable
+  ts: Any
+  ckpt: Checkpoints
+  chunk_index: int
+  total_chunks: int
+  restored_steps: int
+  vineyard: bool
+  env: Any
+
+
+def _set_up(cfg: Config, run_dir: Path, resume: bool, restart: bool, env,
+            primary: bool) -> _Run | dict:
+  """Compiles the run's programs and builds (or restores) its state; cuts the logs back
+  to the restored checkpoint. Returns the last row instead of a run already complete."""
+  tell = _say(not primary)  # what a resume found is said even when quiet
+  if resume:  # the same run or a clear refusal, before anything is built
+    refuse_changes(run_dir, cfg, _config_yaml(run_dir, cfg))
+  if primary:
+    atomic.write_text(run_dir / "config.yaml", to_yaml(cfg))
+    if not resume or original_config(run_dir) is None:
+      write_run_record(run_dir, cfg)
+  members = sweep_members(cfg)
+  vineyard = env is None
+  if vineyard:
+    env = default_env(compile_key(cfg))
+  sac, init_fn, chunk_fn = compiled_trainer(cfg, len(members), env)
+  ts = init_members(cfg, init_fn, members)
+  ckpt = Checkpoints(run_dir, cfg.train.save_replay, clean=primary)
+  ckpt.primary = primary
+  total_chunks = math.ceil(cfg.train.total_env_steps /
+                           (cfg.env.num_envs * cfg.train.iters_per_chunk))
+  chunk_index = 0
+  if primary and getattr(ckpt, "removed", None):
+    tell(f"removed {len(ckpt.removed)} partial checkpoint(s) that an interrupted or "
+         f"failed save left: {', '.join(p.name for p in ckpt.removed)}")
+  if resume:
+    restored = _restore(run_dir, ckpt, ts, restart, primary, tell)
+    if restored is not None:
+      chunk_index, ts = restored
+      if chunk_index >= total_chunks:
+        row = last_row(run_dir)
+        tell(f"{run_dir} is complete: {int(np.max(ts.env_steps))} env steps of "
+             f"{cfg.train.total_env_steps}; raise train.total_env_steps to train on. "
+             f"Its last figures: {report.summary_line(row, ckpt.best_scores())}")
+        return row
+      tell(f"resumed {run_dir} at chunk {chunk_index} ({int(np.max(ts.env_steps))} env "
+           "steps)")
+  # The logs follow the checkpoint: rows written after it (by the run that stopped)
+  # are dropped, so that every chunk appears once and the curves run forward.
+  restored_steps = int(np.max(ts.env_steps)) if chunk_index else 0
+  if primary:
+    dropped = truncate_metrics(run_dir / "metrics.jsonl", restored_steps)
+    if chunk_index == 0:
+      clear_events(run_dir / "tb")
+    if dropped:
+      tell(f"dropped {dropped} row(s) of metrics.jsonl past the checkpoint "
+           f"({restored_steps} env steps); TensorBoard purges them too")
+  ts = ts.replace(budget=jp.full_like(ts.budget, cfg.train.total_env_steps))
+  return _Run(members, sac, chunk_fn, ts, ckpt, chunk_index, total_chunks, restored_steps,
+              vineyard, env)
+
+
+def _config_yaml(run_dir: Path, cfg: Config) -> Config:
+  """The run's config.yaml as it is on disk (`cfg` when it is gone)."""
+  path = run_dir / "config.yaml"
+  return load_config(path) if path.is_file() else cfg
+
+
+def _restore(run_dir: Path, ckpt: Checkpoints, ts, restart: bool, primary: bool,
+             tell: Callable):
+  """(chunk, TrainState) to resume from: the newest intact checkpoint, else the best one;
+  None to start afresh: a run with no checkpoint yet, or, with `restart`, one whose
+  checkpoints are all broken (its outputs set aside first). ResumeRefused otherwise."""
+  had = bool(ckpt.manager.all_steps() or ckpt.best_manager.all_steps())
+  restored = ckpt.restore(ts)
+  if restored is None and ckpt.best_manager.all_steps():
+    restored = ckpt.restore(ts, best=True)
+    if restored is not None:
+      tell(f"no intact checkpoint of the last chunks: resuming from the best checkpoint "
+           f"(chunk {restored[0]})")
+  if restored is not None or not had:
+    if not had:
+      tell(f"no checkpoint in {run_dir} yet; starting the run afresh")
+    return restored
+  broken = run_dir / "checkpoints-broken"
+  if not restart:
+    raise ResumeRefused(f"--resume {run_dir}: no checkpoint of it can be restored (the "
+                        f"broken ones are in {broken}); --restart starts the run afresh "
+                        "in its directory, its old outputs set aside")
+  moved = set_aside(run_dir) if primary else None
+  tell(f"no checkpoint of {run_dir} can be restored: starting afresh (--restart)"
+       + (f"; its old outputs are in {moved}" if moved else ""))
+  for manager in (ckpt.manager, ckpt.best_manager):
+    Path(manager.directory).mkdir(parents=True, exist_ok=True)
+    manager.reload()
+  return None
+
+
+def _describe(cfg: Config, run_dir: Path, run: _Run) -> str:
+  nbytes = sac_lib.buffer_nbytes(run.ts.buffer)
+  steps_per_chunk = cfg.env.num_envs * cfg.train.iters_per_chunk
+  return (f"run {run_dir}: {len(run.members)} seed(s) x {cfg.env.num_envs} envs, "
+          f"{run.total_chunks} chunks of {steps_per_chunk} env steps; replay "
+          f"{nbytes / 2**20:.1f} MiB per seed "
+          f"({nbytes / max(cfg.sac.buffer_size, 1):.0f} B/transition); device "
+          f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}"
+          + (f" over {jax.process_count()} processes" if jax.process_count() > 1 else "")
+          + f"; conv tower {sac_lib.describe_conv_impl(cfg.sac.conv_impl)}")
+
+
+def _check_finite(m: dict, ts, chunk_index: int, ckpt: Checkpoints) -> None:
+  if not np.all(m["finite"]) or not all(np.all(np.isfinite(v)) for v in m.values()):
+    bad = [k for k, v in m.items() if not np.all(np.isfinite(v))]
+    raise NonFiniteError(
+        f"non-finite {'parameters' if not np.all(m['finite']) else ', '.join(bad)} at "
+        f"env step {int(np.max(ts.env_steps))} (chunk {chunk_index + 1}); the last good "
+        f"checkpoint is chunk {ckpt.manager.latest_step()} in {ckpt.dir}")
+
+
+def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Callable):
+  """Trains chunks until the budget, `train.max_minutes` or a stop signal; each chunk goes
+  through `chunk_hooks` in order. Returns (TrainState, chunks done, signal number or 0)."""
+  ts, chunk_index = run.ts, run.chunk_index
+  t_compile, t_start, signum = None, time.time(), 0
+  while chunk_index < run.total_chunks:
+    if cfg.train.max_minutes and time.time() - t_start > 60 * cfg.train.max_minutes:
+      say(f"train.max_minutes = {cfg.train.max_minutes} reached after chunk "
+          f"{chunk_index}: stopping")
+      break
+    if t_compile is None:
+      say("compiling the training iteration (the first chunk includes it)...")
+    t0 = time.time()
+    ts, m = run.chunk_fn(ts)
+    m = jax.device_get(m)
+    dt = time.time() - t0
+    if t_compile is None:
+      t_compile = dt
+      say(f"first chunk done in {dt:.0f} s, compilation included")
+    _check_finite(m, ts, chunk_index, run.ckpt)
+    chunk_index += 1
+    chunk = hooks.Chunk(chunk_index, ts, m, dt, t_compile, [])
+    for hook in chunk_hooks:
+      hook.after_chunk(chunk)
+    ts = chunk.ts
+    # the same decision in every process: a signal to any of them stops all
+    signum = distributed.max_over_processes(stops.requested) or (
+        signal.SIGTERM if distributed.preempted(chunk_index) else 0)
+    if signum:
+      break
+  return ts, chunk_index, signum
+
+
+def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quiet: bool,
+           env, primary: bool, restart: bool) -> dict:
+  say = _say(quiet)
+  phase = ["setup"]  # a signal stops at once but while training (nothing to keep)
+  stops = StopSignals(stop_now=lambda: phase[0] != "training", say=say)
+  with stops:
+    run = _set_up(cfg, run_dir, resume, restart, env, primary)
+    if isinstance(run, dict):  # complete already
+      return run
+    say(_describe(cfg, run_dir, run))
+    seeds = len(run.members)
+    # The evaluations from fresh starts: every eval_every_chunks chunks and at the end, or
+    # only at the end when the closing report is asked for.
+    start_eval = (start_evaluator(cfg, seeds) if run.vineyard and (
+        evaluate_at_end or cfg.train.eval_every_chunks) else None)
+    evaluation = (hooks.FreshStartEvaluation(cfg, run_dir, start_eval, run.ckpt, seeds,
+                                             run.total_chunks, primary, say)
+                  if start_eval is not None else None)
+    steps_per_chunk = cfg.env.num_envs * cfg.train.iters_per_chunk
+    logger = Logger(run_dir, run.total_chunks * steps_per_chunk,
+                    run.chunk_index * steps_per_chunk, enabled=primary,
+                    purge_step=run.restored_steps + 1 if run.chunk_index else None)
+    log = hooks.ChunkLog(cfg, run.members, logger)
+    checkpoints = hooks.Checkpointing(run.ckpt, cfg.train.checkpoint_every_chunks,
+                                      run.total_chunks, run.chunk_index)
+    phase[0] = "training"
+    try:
+      ts, chunk_index, signum = _loop(
+          cfg, run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say)
+      checkpoints.at_end(ts, chunk_index)  # stopped early (a signal, train.max_minutes)
+      phase[0] = "closing"
+      if signum:
+        logger.close()
+        if primary:
+          plot_learning_curve(run_dir)
+        raise Interrupted(signum, f"stopped by {signal.Signals(signum).name} after chunk "
+                          f"{chunk_index} ({int(np.max(ts.env_steps))} env steps); "
+                          f"checkpoint {chunk_index} written")
+      if evaluation is not None:
+        log.last_row.update(evaluation.at_end(ts, chunk_index))
+    finally:
+      logger.close()
+    return _finish(cfg, run_dir, run, ts, evaluation, log.last_row, evaluate_at_end,
+                   primary, say)
+
+
+def _finish(cfg: Config, run_dir: Path, run: _Run, ts, evaluation, row: dict,
+            evaluate_at_end: bool, primary: bool, say: Callable) -> dict:
+  """After the loop: the learning curve, the best scores in the last row, the choice on
+  validation worlds and the closing report."""
+  from mjxvine.evaluation import choice
+  if primary:
+    plot_learning_curve(run_dir)
+  best = evaluation.best if evaluation is not None else run.ckpt.best_scores()
+  if best is not None:
+    row.update({f"best_{k}": v for k, v in best.items()})
+  selected = None
+  if run.vineyard and cfg.train.select_worlds and primary and best is not None:
+    selected = choice.select(cfg, run_dir, say)["selected"]
+    row["selected_env_steps"] = selected
+  if run.vineyard and evaluate_at_end:
+    report.closing_report(cfg, run_dir, run.sac, run.ckpt, ts, len(run.members), best, row,
+                          say, evaluation.start_eval, evaluation.key, primary, selected)
+  return row
