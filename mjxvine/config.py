@@ -147,7 +147,7 @@ class EnvConfig:
       (0.0, 0.6), 0.0, 0.95, doc="training starts lie this fraction of the row length from "
       "the lane's start in the travel direction, drawn uniformly (a random point along the "
       "lane); the evaluation from fresh starts always draws from [0, 0.6] "
-      "(starts.EVAL_START_ALONG)")
+      "(evaluation.starts.EVAL_START_ALONG)")
   yaw_reference: str = _f("start", choices=("start", "world"),
                           doc="the state's yaw: relative to the heading at the episode start "
                           "(a robot zeroing its IMU at the row entrance; this project's "
@@ -281,7 +281,7 @@ class TrainConfig:
   select_worlds: int = _f(0, 0, 64, doc="choose the best checkpoint on this many "
                           "validation worlds (test-kind worlds of seeds select_world_seed "
                           "and up, never a test table's) among the train.select_candidates "
-                          "best fresh-start evaluations, after training (mjxvine.select; "
+                          "best fresh-start evaluations, after training (mjxvine.evaluation.choice; "
                           "writes their policies as train.keep_eval_policies does; 0: the "
                           "best fresh-start evaluation is the best checkpoint)")
   select_world_seed: int = _f(100, 100, 2**31 - 1, doc="the first validation world's seed "

@@ -30,6 +30,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from mjxvine.atomic import check_output
 from mjxvine.config import ROBOT_NAMES, ConfigError, add_config_args, enable_compile_cache
 # One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
 from mjxvine.deploy import PolicyError
@@ -173,14 +174,14 @@ def run(args) -> int:
       video.choose_gl()
       if args.video:
         video.check_mp4()
-    out = Path(args.out)
+    out = check_output(args.out, "--out", directory=True)  # before the first rollout
     if args.suite == "paper":
       run_suite(cfg, args, out)
     elif args.sweep:
       run_sweep(cfg, args, world, out)
     else:
       run_tables(cfg, source, args, world, out)
-  except (PolicyError, FileNotFoundError, ValueError, RenderError) as e:
+  except (PolicyError, FileNotFoundError, ValueError, RenderError) as e:  # OutputError too
     print(f"error: {e}", file=sys.stderr)
     return 2
   return 0

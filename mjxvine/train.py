@@ -30,7 +30,7 @@ import jax
 from mjxvine.atomic import OutputError, check_output
 from mjxvine.config import (DEFAULT_CONFIG_NAME, PACKAGED_CONFIGS, Config, add_config_args,
                             config_from_args, enable_compile_cache, resolve_config_path)
-from mjxvine.rundir import (EXIT_NON_FINITE, EXIT_USAGE, EXIT_WRITE, RESUME_FREE, Interrupted,
+from mjxvine.rundir import (EXIT_NON_FINITE, EXIT_USAGE, EXIT_WRITE, Interrupted,
                             ResumeRefused, RunDirBusy, WriteError, busy_message, exit_code,
                             lock_holder, refuse_changes, write_failure)
 from mjxvine.training.iteration import NonFiniteError
@@ -51,7 +51,9 @@ def parser() -> argparse.ArgumentParser:
   p.add_argument("--run-dir", default=None, help="run directory (default runs/<time>)")
   p.add_argument("--resume", default=None, metavar="RUN_DIR",
                  help="continue an interrupted run from its newest intact checkpoint (else "
-                 "its best); only " + ", ".join(RESUME_FREE) + " may change")
+                 "its best); --set may change its budget and what runs around the "
+                 "training (train.total_env_steps, train.max_minutes, evaluations, the "
+                 "choice, eval.*), never networks, images, replay or envs")
   p.add_argument("--restart", action="store_true",
                  help="with --resume: when no checkpoint of the run can be restored, start "
                  "it afresh in its directory (its old outputs set aside in previous-<time>/)")
@@ -79,7 +81,7 @@ def parser() -> argparse.ArgumentParser:
 
 def resumed_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
   """The config of the run in --resume: its config.yaml, with the --set overrides of the
-  keys that may change (`RESUME_FREE`)."""
+  keys that may change (`rundir.RESUME_FREE`)."""
   run_dir = Path(args.resume)
   resolved = run_dir / "config.yaml"
   if not run_dir.is_dir():

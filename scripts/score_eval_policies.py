@@ -5,11 +5,11 @@ that rules for choosing the best checkpoint can be compared without training aga
       [--steps 50000,90000]
 
 For each RUN/eval_policies/env<steps>.npz, one batched rollout of the validation protocol
-that `train.select_worlds` chooses on (`mjxvine.select.score_policy`): every
+that `train.select_worlds` chooses on (`mjxvine.choice.score_policy`): every
 lane-direction of each validation world (test-kind seeds that the test tables never use)
 with `--runs` runs at the config's noise factor, and rows 1F and 4F of the first
 validation world with 3 runs at each `--noise` factor. Besides, the
-fresh-start evaluation of the trainer (`mjxvine.starts`) on the training pool at the
+fresh-start evaluation of the trainer (`mjxvine.evaluation.starts`) on the training pool at the
 config's noise factor (`--pool-starts` per direction; the trainer's own draws its noise
 per episode from env.train_noise_factor), a candidate yardstick that needs no test world.
 
@@ -32,19 +32,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mjxvine import evaluate as ev  # noqa: E402
 from mjxvine import networks as nw  # noqa: E402
-from mjxvine import policies, select, starts  # noqa: E402
-from mjxvine import train as train_lib  # noqa: E402
+from mjxvine.evaluation import choice, paper, policies, starts  # noqa: E402
 from mjxvine.config import load_config, replace  # noqa: E402
 from mjxvine.env import training_env  # noqa: E402
 from mjxvine.worlds import make_world  # noqa: E402
 
 def score(cfg, path: Path, worlds, runs: int, noise_factors, pool_env, pool_eval) -> dict:
-  """One policy's scores: `select.score_policy` on the validation worlds, and
+  """One policy's scores: `choice.score_policy` on the validation worlds, and
   pool_noise1: the fresh-start evaluation at the config's noise factor."""
   tests = [make_world(str(s), cfg.world) for s in worlds]
-  out = select.score_policy(cfg, path, tests, runs, noise_factors)
+  out = choice.score_policy(cfg, path, tests, runs, noise_factors)
   pool = pool_eval(policies.load_actor_params(path, pool_env), jax.random.PRNGKey(0))
   out["pool_noise1"] = {k: float(v) for k, v in pool.items()}
   return out
@@ -63,12 +61,12 @@ def main(argv=None) -> int:
   worlds = [int(s) for s in args.worlds.split(",")]
   noise_factors = [float(s) for s in args.noise.split(",") if s]
   cfg = load_config(args.run / "config.yaml")
-  files = sorted(select.kept_policies(args.run).items())
+  files = sorted(choice.kept_policies(args.run).items())
   out_file = args.run / "eval_policies" / "scores.jsonl"
   only = {int(s) for s in args.steps.split(",") if s}
   done = {json.loads(l)["env_steps"] for l in out_file.read_text().splitlines()} \
       if out_file.is_file() else set()
-  trainer = select.trainer_evaluations(args.run)
+  trainer = choice.trainer_evaluations(args.run)
 
   # the training pool at the config's noise factor: no per-episode noise draw
   pool_cfg = replace(cfg, env={"train_noise_factor": (0.0, 0.0)})
@@ -113,21 +111,21 @@ def _trainer(r: dict) -> dict:
 # Candidate rules for the best checkpoint, each a sort key over a scored row (higher is
 # better); "trainer" is the trainer's own evaluation, "pool@1" the noise-1 one above.
 RULES = {
-    "weaker, -MAE (the trainer's)": lambda r: train_lib._score(r["trainer"]),
+    "weaker, -MAE (the trainer's)": lambda r: choice.fresh_start_score(r["trainer"]),
     "weaker, sum, -MAE": lambda r: (*_minmax(_trainer(r)), -_trainer(r)["mae_m"]),
     "pool@1 weaker, sum, -MAE": lambda r: (*_minmax(r["pool_noise1"]),
                                            -r["pool_noise1"]["mae_m"]),
     "weaker of both, -MAE@1": lambda r: (min(_minmax(_trainer(r))[0],
                                              _minmax(r["pool_noise1"])[0]),
                                          -r["pool_noise1"]["mae_m"]),
-    # mjxvine.select's order, over every scored policy (not its top candidates only)
-    "validation successes, -MAE": select.rank,
+    # the choice's order (mjxvine.evaluation.choice.rank), over every scored policy (not its top candidates only)
+    "validation successes, -MAE": choice.rank,
 }
 
 
 def val_line(r: dict) -> str:
   w = r["worlds"]
-  noise_runs = select.NOISE_RUNS * len(select.NOISE_LANES)
+  noise_runs = paper.NOISE_RUNS * len(paper.NOISE_LANES)
   maes = [v["mae_m_rows"] for v in w.values() if v["mae_m_rows"] is not None]
   return (" ".join(f"{v['success']}/{v['episodes']}" for v in w.values())
           + f", MAE {np.mean(maes) if maes else float('nan'):.3f}; noise "

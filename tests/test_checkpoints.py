@@ -13,7 +13,10 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from mjxvine.rundir import checkpoints as checkpoint, evaluate, export, policies
+from mjxvine import evaluate, export
+from mjxvine.deploy import PolicyError
+from mjxvine.evaluation import policies
+from mjxvine.rundir import checkpoints as checkpoint
 from mjxvine import networks as nw
 
 
@@ -92,15 +95,16 @@ def test_relative_paths(runs, monkeypatch, tmp_path, capsys):
   item = checkpoint.checkpoint_item("run")
   assert item.is_absolute() and item == runs / "run" / "checkpoints" / "best" / "4" / "default"
   assert _step_of(checkpoint.restore_actor_params("run", "last")[0]) == 5.0
-  # evaluate's loader (through mjxvine.policies), as `evaluate --policy run`
+  # evaluate's loader (through mjxvine.evaluation.policies), as `evaluate --policy run`
   assert _step_of(policies.load_actor_params("run", env=None)) == 4.0
-  assert evaluate.check_policy_file("run", "last") == Path("run")
-  # the export CLI: relative run dir and relative output
+  assert policies.check_policy_file("run", "last") == Path("run")
+  # the export CLI finds the relative run's checkpoint, and refuses its tiny actor, which
+  # is not the one the (default) config builds, in one line naming an array
   out = tmp_path / "policy.npz"
-  assert export.main(["--checkpoint", "run", "--which", "last", "--out", str(out)]) == 0
-  with np.load(out) as f:
-    assert float(f["mean/bias"][0]) == 5.0
-  assert "checkpoints/5/default" in capsys.readouterr().err
+  assert export.main(["--checkpoint", "run", "--which", "last", "--out", str(out)]) == 2
+  err = capsys.readouterr().err
+  assert "does not fit the config: dense0/bias (4,) (the config's (256,))" in err
+  assert len(err.splitlines()) == 1 and not out.exists()
 
 
 def test_missing_run_directory_is_one_line_with_status_2(runs, monkeypatch, tmp_path, capsys):
@@ -111,7 +115,7 @@ def test_missing_run_directory_is_one_line_with_status_2(runs, monkeypatch, tmp_
   assert evaluate.main(["--policy", "runs/nope", "--which", "last", "--out", str(tmp_path)]) == 2
   err = capsys.readouterr().err
   assert "no such run directory: runs/nope" in err and len(err.splitlines()) == 1
-  with pytest.raises(evaluate.PolicyError, match="no such run directory"):
+  with pytest.raises(PolicyError, match="no such run directory"):
     policies.load_actor_params("runs/nope", env=None)
   # a directory without checkpoints says so
   (runs / "empty").mkdir(exist_ok=True)
@@ -185,13 +189,18 @@ def test_checkpoints_save_restore_and_load_the_policy(tiny_actor, tmp_path, caps
     if f.is_file() and f.stat().st_size > 0 and "ocdbt" not in f.name:
       f.write_bytes(b"garbage")
   step, _ = checkpoint.Checkpoints(tmp_path, save_replay=False).restore(template)
-  assert step == 2 and "checkpoint 3 is corrupt or partial" in capsys.readouterr().err
-  # ... and the policy loaders name it in one line
+  err = capsys.readouterr().err
+  assert step == 2 and "checkpoint 3 is corrupt or partial" in err
+  # ... moved aside, where nothing reads it but a person: "last" is step 2 now
+  broken = tmp_path / "checkpoints-broken" / "3"
+  assert f"moved to {broken}" in err and not (tmp_path / "checkpoints" / "3").exists()
+  assert checkpoint.checkpoint_item(tmp_path, "last").parent.name == "2"
+  # ... and the policy loaders name the broken step in one line
   with pytest.raises(ValueError, match="3/default: not a readable orbax checkpoint"):
-    checkpoint.restore_actor_params(tmp_path, "last")
-  with pytest.raises(evaluate.PolicyError, match="not a readable orbax checkpoint"):
-    policies.load_actor_params(tmp_path, env=None, which="last")
-  assert export.main(["--checkpoint", str(tmp_path), "--which", "last"]) == 2
+    checkpoint.restore_actor_params(broken)
+  with pytest.raises(PolicyError, match="not a readable orbax checkpoint"):
+    policies.load_actor_params(broken, env=None)
+  assert export.main(["--checkpoint", str(broken)]) == 2
   err = capsys.readouterr().err
   assert "not a readable orbax checkpoint" in err and len(err.splitlines()) == 1
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from mjxvine import deploy, export
+from mjxvine.deploy import export as export_lib
 from mjxvine import networks as nw
 from mjxvine.config import Config, config_hash
 from conftest import NUMPY_ONLY_PRELUDE
@@ -34,8 +35,8 @@ def exported(tmp_path_factory):
     return jax.tree.map(lambda x: x + 0.01 if x.ndim == 1 else x, params)
 
   params = init(jax.random.PRNGKey(0))
-  path = export.export_actor(params, tmp_path_factory.mktemp("policy") / "policy.npz",
-                             export.meta_from_config(cfg))
+  path = export_lib.export_actor(params, tmp_path_factory.mktemp("policy") / "policy.npz",
+                             export_lib.meta_from_config(cfg))
   flax_action = jax.jit(lambda p, o: nw.deterministic_action(
       nets.actor.apply({"params": p}, o)[0], nets.action_low, nets.action_high))
   return path, params, flax_action

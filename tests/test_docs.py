@@ -46,8 +46,9 @@ DOC_FILES = [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").
 MARK = re.compile(r"^<!--\s*(skip|no-run|slow):\s*(.+?)\s*-->\s*$")
 FENCE = re.compile(r"^```(\w*)\s*$")
 CLIS = {"train": "mjxvine.train", "evaluate": "mjxvine.evaluate", "export": "mjxvine.export",
-        "worlds": "mjxvine.worlds.__main__", "bench": "mjxvine.bench",
-        "latency": "mjxvine.latency", "select": "mjxvine.select"}
+        "worlds": "mjxvine.worlds.__main__", "bench": "mjxvine.bench.__main__",
+        "latency": "mjxvine.latency", "select": "mjxvine.select", "choose": "mjxvine.choose",
+        "view": "mjxvine.view"}
 # Tools outside the package that documented commands call: only the repository files they
 # name are checked.
 EXTERNAL = {"tensorboard", "jupyter", "nvidia-smi", "ros2"}

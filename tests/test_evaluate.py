@@ -74,7 +74,7 @@ def test_bad_policy_and_world_fail_in_one_line(tmp_path, capsys):
   assert evaluate_main(["--policy", str(tmp_path / "nope.npz"), "--out", str(tmp_path)]) == 2
   assert "policy not found" in capsys.readouterr().err
   assert evaluate_main(["--policy", "oracle", "--world", "lane9", "--out", str(tmp_path)]) == 2
-  assert "unknown world" in capsys.readouterr().err
+  assert "give a seed or a world .json file" in capsys.readouterr().err
 
 
 def test_lane_progress():

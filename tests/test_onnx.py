@@ -12,6 +12,8 @@ import pytest
 
 from mjxvine import config as config_lib
 from mjxvine import deploy, export
+from mjxvine.deploy import export as export_lib
+from mjxvine.deploy import onnx as onnx_lib
 from mjxvine import networks as nw
 
 onnx = pytest.importorskip("onnx")
@@ -30,8 +32,8 @@ def small_policy(tmp_path_factory):
   # Non-zero biases, and a larger mean head so that both actions vary across inputs.
   params = jax.tree.map(lambda x: x + 0.02 if x.ndim == 1 else x, params)
   params["mean"]["kernel"] = params["mean"]["kernel"] * 20.0
-  path = export.export_actor(params, tmp_path_factory.mktemp("onnx") / "policy.npz",
-                             export.meta_from_config(cfg))
+  path = export_lib.export_actor(params, tmp_path_factory.mktemp("onnx") / "policy.npz",
+                             export_lib.meta_from_config(cfg))
   flax_action = jax.jit(lambda p, o: nw.deterministic_action(
       nets.actor.apply({"params": p}, o)[0], nets.action_low, nets.action_high))
   return path, params, flax_action
@@ -54,7 +56,7 @@ def _session(path):
 def test_onnx_matches_numpy_policy(small_policy, tmp_path):
   path, params, flax_action = small_policy
   policy = deploy.NumpyPolicy.load(path)
-  onnx_path = export.export_onnx(path, tmp_path / "policy.onnx")
+  onnx_path = onnx_lib.export_onnx(path, tmp_path / "policy.onnx")
   sess = _session(onnx_path)
   assert [i.name for i in sess.get_inputs()] == ["depth", "state"]
   assert [o.name for o in sess.get_outputs()] == ["action"]
@@ -70,13 +72,13 @@ def test_onnx_matches_numpy_policy(small_policy, tmp_path):
   assert got[:, 0].std() > 1e-3 and got[:, 1].std() > 1e-3  # a non-trivial comparison
   assert np.all(got >= [0.0, -1.0]) and np.all(got <= [0.5, 1.0])
   model = onnx.load(str(onnx_path))
-  meta = json.loads({p.key: p.value for p in model.metadata_props}[export.ONNX_META_KEY])
+  meta = json.loads({p.key: p.value for p in model.metadata_props}[onnx_lib.ONNX_META_KEY])
   assert meta["image_size"] == [H, W] and meta["action_high"] == [0.5, 1.0]
 
 
 def test_onnx_from_arrays_with_preprocess(small_policy, tmp_path):
   arrays, meta = deploy.read_policy_file(small_policy[0])
-  sess = _session(export.export_onnx((arrays, meta), tmp_path / "pre.onnx", preprocess=True))
+  sess = _session(onnx_lib.export_onnx((arrays, meta), tmp_path / "pre.onnx", preprocess=True))
   policy = deploy.NumpyPolicy(arrays, meta, preprocess=True)
   depth, state = _inputs(2, 4)
   depth[0, 5, 6], depth[1, 7, 8], depth[1, 9, 9] = np.nan, 9.0, -np.inf
@@ -87,16 +89,16 @@ def test_onnx_from_arrays_with_preprocess(small_policy, tmp_path):
   assert clean[0, 2, 10] == clean[1, 21, 4] == clean[0, 5, 6] == 5.0  # the maximum range
   np.testing.assert_allclose(got, policy.action(clean, state), atol=1e-5)
   # another value for invalid pixels: the graph and the numpy policy agree
-  sess = _session(export.export_onnx((arrays, meta), tmp_path / "pre1.onnx", preprocess=True,
+  sess = _session(onnx_lib.export_onnx((arrays, meta), tmp_path / "pre1.onnx", preprocess=True,
                                      invalid_depth=1.0))
   (got1,) = sess.run(["action"], {"depth": depth, "state": state})
   near = deploy.NumpyPolicy(arrays, meta, preprocess=True, invalid_depth=1.0)
   np.testing.assert_allclose(got1, near.action(depth, state), atol=1e-5)
   assert np.abs(got1 - got).max() > 1e-4  # the value matters
   with pytest.raises(ValueError, match="meta"):
-    export.export_onnx(arrays, tmp_path / "x.onnx")
+    onnx_lib.export_onnx(arrays, tmp_path / "x.onnx")
   with pytest.raises(deploy.PolicyFormatError, match="lacks arrays"):
-    export.export_onnx({k: v for k, v in arrays.items() if k != "mean/bias"},
+    onnx_lib.export_onnx({k: v for k, v in arrays.items() if k != "mean/bias"},
                        tmp_path / "x.onnx", meta)
 
 
@@ -122,7 +124,7 @@ def test_export_module_does_not_import_onnx():
 def test_latency_onnx(small_policy, tmp_path, capsys):
   from mjxvine import latency
 
-  onnx_path = export.export_onnx(small_policy[0], tmp_path / "policy.onnx")
+  onnx_path = onnx_lib.export_onnx(small_policy[0], tmp_path / "policy.onnx")
   result = latency.onnx_latency(onnx_path, threads=1, calls=5)
   assert result["calls"] == 5 and 0.0 < result["min_ms"] <= result["median_ms"]
   latency.main([str(onnx_path), "--calls", "3", "--threads", "2", "--no-spinning"])
@@ -156,7 +158,7 @@ def test_mirror_averaged_policy_is_symmetric_in_flax_numpy_and_onnx(small_policy
   meta = dict(meta, mirror_average=True)
   policy, plain = deploy.NumpyPolicy(arrays, meta), deploy.NumpyPolicy(arrays, dict(meta))
   plain.mirror_average = False
-  sess = _session(export.export_onnx((arrays, meta), tmp_path / "mirror.onnx"))
+  sess = _session(onnx_lib.export_onnx((arrays, meta), tmp_path / "mirror.onnx"))
   cfg = config_lib.replace(config_lib.Config(), camera={"height": H, "width": W})
   nets = nw.make_networks_from_config(cfg)
   mirror = (VineyardEnv.mirror_obs, VineyardEnv.mirror_action)

@@ -3,7 +3,6 @@ expects), gives the actions of before on valid input; the ROS depth helpers; the
 node stops on a refused input. numpy only (no jax): fast."""
 
 import importlib.util
-import json
 import math
 import os
 import re

@@ -13,7 +13,8 @@ import pytest
 from mjxvine import train as train_mod
 from mjxvine.training import loop
 from mjxvine.training import programs
-from mjxvine import trainer
+from mjxvine import rundir
+from mjxvine.training import iteration as trainer
 from mjxvine.rundir.checkpoints import Checkpoints
 from mjxvine.config import load_config
 from mjxvine.sac import learner_conv_impl
@@ -144,7 +145,7 @@ def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
       return ts, m
     return sac, init_fn, chunk
 
-  monkeypatch.setattr(train_mod, "compiled_trainer", poisoned)
+  monkeypatch.setattr(loop, "compiled_trainer", poisoned)
   with pytest.raises(trainer.NonFiniteError, match="non-finite parameters at env step 40"):
     loop.train(_cfg(80), tmp_path / "nan", quiet=True, evaluate_at_end=False)
   # the checkpoint of the last good chunk is kept
@@ -177,7 +178,9 @@ def test_resuming_a_finished_run_says_it_is_complete(first_run, monkeypatch, cap
 def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   """export -> .npz holds the checkpoint's actor; `evaluate --policy x.npz` runs it; a
   policy for another image size is refused in one line."""
-  from mjxvine import evaluate, export, policies
+  from mjxvine import export
+  from mjxvine.deploy import PolicyError
+  from mjxvine.evaluation import policies, rollout
   from mjxvine.env import VineyardEnv
   from mjxvine.worlds import generate_world
   run, _ = first_run
@@ -195,10 +198,86 @@ def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   kept = policies.load_actor_params(run / "eval_policies" / f"env{best_steps}.npz", env)
   for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(from_npz)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-  doc = evaluate.evaluate(cfg, str(npz), world, runs=1, noise_factor=1.0, lanes=(1,),
+  doc = rollout.evaluate(cfg, str(npz), world, runs=1, noise_factor=1.0, lanes=(1,),
                           directions=("F",))
   assert doc["overall"]["runs"] == 1 and doc["rows"][0]["outcomes"][0] in (
       "timeout", "collision", "left_lane", "reversed", "success")
   other = VineyardEnv(load_config(run / "config.yaml", ["camera.width=40"]), [world])
-  with pytest.raises(evaluate.PolicyError, match="trained for 36x36"):
-    evaluate.load_policy(str(npz), other)
+  with pytest.raises(PolicyError, match="trained for 36x36"):
+    policies.load_policy(str(npz), other)
+
+
+def _copy(run, tmp_path, name="copy"):
+  copy = tmp_path / name
+  shutil.copytree(run, copy)
+  return copy
+
+
+def _break(step_dir):
+  """Truncates every data file of a checkpoint step to 0 bytes."""
+  for f in step_dir.rglob("*"):
+    if f.is_file() and f.stat().st_size > 0:
+      f.write_bytes(b"")
+
+
+def test_resume_refuses_an_edited_config_and_changes_nothing(first_run, tmp_path, capsys):
+  """config.yaml edited to another network: the resume is refused in one line naming the
+  key and both values, before anything is built; the run's files are as they were."""
+  copy = _copy(first_run[0], tmp_path)
+  (copy / "config.yaml").write_text(
+      (copy / "config.yaml").read_text().replace("hidden: 16", "hidden: 24"))
+  before = {p: p.read_bytes() for p in copy.rglob("*") if p.is_file() and p.name != "config.yaml"}
+  with pytest.raises(SystemExit) as exit_info:
+    train_mod.main(["--resume", str(copy)])
+  err = capsys.readouterr().err
+  assert exit_info.value.code == 2 and "sac.hidden 16 -> 24" in err
+  assert {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()
+          and p.name != "config.yaml"} == before
+  # the library refuses the same way
+  with pytest.raises(rundir.ResumeRefused, match="sac.hidden"):
+    loop.train(load_config(copy / "config.yaml"), copy, resume=True, quiet=True)
+
+
+def test_resume_after_broken_checkpoints_takes_the_newest_intact_one(first_run, tmp_path, capsys):
+  """The newest steps broken (one file each truncated to 0 bytes): the resume takes the
+  next intact one, says so in one line per broken step and moves them aside; with every
+  regular step broken it takes the best checkpoint."""
+  copy = _copy(first_run[0], tmp_path)
+  steps = sorted(int(p.name) for p in (copy / "checkpoints").iterdir() if p.name.isdigit())
+  _break(copy / "checkpoints" / str(steps[-1]))
+  row = loop.train(_cfg(100, *EVAL), copy, resume=True, quiet=True, evaluate_at_end=False)
+  err = capsys.readouterr().err
+  assert f"checkpoint {steps[-1]} is corrupt or partial" in err and "moved to" in err
+  assert f"resumed {copy} at chunk {steps[-2]}" in err and row["env_steps"] == 100
+  assert (copy / "checkpoints-broken" / str(steps[-1])).is_dir()
+  # every regular step broken: the best checkpoint
+  copy2 = _copy(first_run[0], tmp_path, "copy2")
+  for s in steps:
+    _break(copy2 / "checkpoints" / str(s))
+  best = json.loads((copy2 / "best.json").read_text())["chunk"]
+  loop.train(_cfg(100, *EVAL), copy2, resume=True, quiet=True, evaluate_at_end=False)
+  err = capsys.readouterr().err
+  assert f"resuming from the best checkpoint (chunk {best})" in err
+  assert sorted(p.name for p in (copy2 / "checkpoints-broken").iterdir()) == [
+      str(s) for s in sorted(steps)]
+
+
+def test_resume_with_nothing_intact_is_refused_then_restarts_on_request(first_run, tmp_path,
+                                                                         capsys):
+  copy = _copy(first_run[0], tmp_path)
+  for step in list((copy / "checkpoints").rglob("*")):
+    if step.is_dir() and step.name.isdigit():
+      _break(step)
+  assert train_mod.main(["--resume", str(copy)]) == 2
+  err = capsys.readouterr().err
+  assert "no checkpoint of it can be restored" in err and "--restart" in err
+  assert train_mod.main(["--resume", str(copy), "--restart", "--no-eval"]) == 0
+  err = capsys.readouterr().err
+  assert "starting afresh (--restart)" in err
+  previous = [p for p in copy.iterdir() if p.name.startswith("previous-")]
+  assert len(previous) == 1 and (previous[0] / "best.json").is_file()
+  rows = [json.loads(l) for l in (copy / "metrics.jsonl").read_text().splitlines()]
+  assert rows[0]["chunk"] == 1 and rows[-1]["env_steps"] == 80
+  # the new best checkpoint belongs to the new run (its own best.json), the lock is gone
+  assert json.loads((copy / "best.json").read_text())["chunk"] in (2, 4)
+  assert not (copy / "lock").exists()

@@ -6,11 +6,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 from typing import Any, Callable
 
 import mjxvine.bench
 from mjxvine import config as config_lib
+from mjxvine import atomic
+from mjxvine.atomic import OutputError, check_output
 from mjxvine.bench.brax_envs import add_brax_args, bench_brax
 from mjxvine.bench.common import environment, json_default, write_results
 from mjxvine.bench.deploy import add_deploy_args, bench_deploy
@@ -66,6 +67,12 @@ def main(argv: list[str] | None = None) -> int:
   p.add_argument("--quick", action="store_true",
                  help="small sizes (a CPU smoke run: 4 envs, 40x40 images, batch 32)")
   args = parser.parse_args(argv)
+  if args.out:  # before the benchmark runs, not after
+    try:
+      check_output(args.out, "--out")
+    except OutputError as e:
+      print(f"error: {e}", file=sys.stderr)
+      return 2
   if args.command == "all":
     return run_all(args.out, args.quick)
   cfg = config_lib.config_from_args(args)
@@ -95,7 +102,7 @@ def run_all(out: str, quick: bool = False) -> int:
     doc[name] = write_results(name, rows, None, config_hash=config_lib.config_hash(cfg),
                               **extra)
   if out:
-    Path(out).write_text(json.dumps(doc, indent=1, default=json_default))
+    atomic.write_text(out, json.dumps(doc, indent=1, default=json_default))
   return 0
 
 

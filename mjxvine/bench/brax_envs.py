@@ -45,8 +45,8 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   from mjxvine import wrappers  # pylint: disable=import-outside-toplevel
   from mjxvine.env import VectorObsEnv  # pylint: disable=import-outside-toplevel
   from mjxvine.rundir import checkpoints as checkpoint  # pylint: disable=import-outside-toplevel
-  from mjxvine import policies  # pylint: disable=import-outside-toplevel
-  from mjxvine import train as train_lib  # pylint: disable=import-outside-toplevel
+  from mjxvine.evaluation import policies  # pylint: disable=import-outside-toplevel
+  from mjxvine.training import loop, programs  # pylint: disable=import-outside-toplevel
 
   pool = tuple(int(x) for x in args.pool.split("x"))
   venv = VectorObsEnv(cfg, pool)
@@ -77,21 +77,21 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
                 "eps_min": 0.0},
       train={"iters_per_chunk": max(1, per_eval // n // 4)})
   adapter = wrappers.brax_env(venv, length)
-  sac, _, _ = train_lib.compiled_trainer(ours, env=adapter)
+  sac, _, _ = programs.compiled_trainer(ours, env=adapter)
   evaluator = Evaluator(
       brax_envs.training.wrap(venv, episode_length=length),
       lambda params: policies.actor_policy(sac.nets, params, brax=True),
       num_eval_envs=args.eval_envs, episode_length=length, action_repeat=1,
       key=jax.random.PRNGKey(cfg.train.seed + 1))
   run = Path(tempfile.mkdtemp(prefix="bench-brax-"))
-  template = train_lib.compiled_trainer(ours, env=adapter)[1](
+  template = programs.compiled_trainer(ours, env=adapter)[1](
       jax.random.split(jax.random.PRNGKey(cfg.train.seed), 1))
   train_s = 0.0
   for k in range(args.evals + 1):
     steps = max(k * per_eval, 1)
     t = time.perf_counter()
     if k:
-      train_lib.train(config_lib.replace(ours, train={"total_env_steps": steps}), run,
+      loop.train(config_lib.replace(ours, train={"total_env_steps": steps}), run,
                       resume=k > 1, evaluate_at_end=False, quiet=True, env=adapter)
     train_s += time.perf_counter() - t
     restored = checkpoint.Checkpoints(run, False).restore(template) if k else None

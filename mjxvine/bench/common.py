@@ -18,6 +18,9 @@ import jax
 import jax.numpy as jp
 import numpy as np
 
+from mjxvine import atomic
+from mjxvine.formatting import fmt_value
+
 # The repository's experiments/ folder: default configs of `bench train` and `bench brax`.
 EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
 
@@ -55,7 +58,7 @@ def write_results(name: str, rows: list[dict], out: str | None = None, **extra) 
         f"mujoco {env['versions'].get('mujoco')}, load {env['load_avg']}")
   if rows:
     keys = list(dict.fromkeys(k for r in rows for k in r))
-    cells = [[format_cell(r.get(k, "")) for k in keys] for r in rows]
+    cells = [[fmt_value(r.get(k, "")) for k in keys] for r in rows]
     widths = [max(len(k), *(len(c[i]) for c in cells)) for i, k in enumerate(keys)]
     print("  ".join(k.rjust(w) for k, w in zip(keys, widths)))
     for c in cells:
@@ -63,17 +66,9 @@ def write_results(name: str, rows: list[dict], out: str | None = None, **extra) 
   for k, v in extra.items():
     print(f"{k}: {v}")
   if out:
-    with open(out, "w") as f:
-      json.dump(result, f, indent=1, default=json_default)
+    atomic.write_text(out, json.dumps(result, indent=1, default=json_default))
     print(f"wrote {out}")
   return result
-
-
-def format_cell(v) -> str:
-  """One table cell: floats to 4 significant digits (no exponent from 1e5 up)."""
-  if isinstance(v, float):
-    return f"{v:.4g}" if abs(v) < 1e5 else f"{v:.0f}"
-  return str(v)
 
 
 def json_default(o):

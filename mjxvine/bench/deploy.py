@@ -38,7 +38,7 @@ def bench_deploy(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
   import subprocess  # pylint: disable=import-outside-toplevel
   import tempfile  # pylint: disable=import-outside-toplevel
   from mjxvine import deploy  # pylint: disable=import-outside-toplevel
-  from mjxvine import export  # pylint: disable=import-outside-toplevel
+  from mjxvine.deploy import export, onnx  # pylint: disable=import-outside-toplevel
   from mjxvine import networks  # pylint: disable=import-outside-toplevel
   h, w = cfg.camera.height, cfg.camera.width
   nets = networks.make_networks_from_config(cfg)
@@ -66,7 +66,7 @@ def bench_deploy(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
       rows.append(dict(impl="NumpyPolicy", threads=n, **common, **latency(npz, n)))
     try:
       import onnxruntime as ort  # pylint: disable=import-outside-toplevel
-      onnx_path = export.export_onnx(npz, Path(tmp) / "policy.onnx")
+      onnx_path = onnx.export_onnx(npz, Path(tmp) / "policy.onnx")
     except ImportError as e:
       rows.append(dict(impl="onnxruntime", **common, note=f"not available ({e}); "
                        "pip install mjxvine[onnx]"))
@@ -74,7 +74,7 @@ def bench_deploy(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
       # Agreement of the two on a few random images (max |action difference|).
       rng = np.random.default_rng(args.seed)
       depth = rng.uniform(0.0, cfg.camera.max_depth_m, (4, h, w, 1)).astype(np.float32)
-      state = rng.uniform(-1.0, 1.0, (4, 3)).astype(np.float32)
+      state = rng.uniform([0.0, -1.0, -np.pi], [0.5, 1.0, np.pi], (4, 3)).astype(np.float32)
       sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
       diff = float(np.abs(sess.run(["action"], {"depth": depth, "state": state})[0] -
                           deploy.NumpyPolicy.load(npz).action(depth, state)).max())

@@ -29,7 +29,7 @@ def bench_train(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   env-steps/s and gradient-steps/s of whole learning chunks (env steps with exploration,
   replay inserts, gradient steps), after a first chunk that compiles and fills the replay
   beyond one batch. Compile time is the first chunk's excess over a steady one."""
-  from mjxvine import train as train_lib  # pylint: disable=import-outside-toplevel
+  from mjxvine.training import programs  # pylint: disable=import-outside-toplevel
   rows = []
   if args.sizes:
     sizes = [int(x) for x in args.sizes.split(",")]
@@ -39,7 +39,7 @@ def bench_train(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
     iters = args.iters or cfg.train.iters_per_chunk
     c = config_lib.replace(cfg, env={"num_envs": n}, sac={"warmup_steps": 0},
                            train={"iters_per_chunk": iters})
-    _, init_fn, chunk_fn = train_lib.compiled_trainer(c)
+    _, init_fn, chunk_fn = programs.compiled_trainer(c)
     ts = init_fn(jax.random.split(jax.random.PRNGKey(0), 1))
     # Warm-up chunks: compile, and fill the replay past one batch so that every iteration
     # of the timed chunk learns (the CPU path compiles its learning program on first use).

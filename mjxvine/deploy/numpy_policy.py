@@ -95,7 +95,7 @@ ROS_DEPTH_ENCODINGS = {"16UC1": (np.uint16, 0.001), "32FC1": (np.float32, None)}
 
 class PolicyError(ValueError):
   """A policy cannot be loaded or does not fit its use: the base class of the errors of
-  `NumpyPolicy`, also raised by `mjxvine.evaluate` (as `evaluate.PolicyError`)."""
+  `NumpyPolicy`, also raised by the evaluation policies (`mjxvine.evaluation.policies`)."""
 
 
 class PolicyFormatError(PolicyError):

@@ -16,7 +16,7 @@ from typing import Callable
 import jax
 import jax.numpy as jp
 
-from mjxvine.deploy import PolicyError, read_policy_file
+from mjxvine.deploy import NumpyPolicy, PolicyError, PolicyFormatError, read_policy_file
 from mjxvine.networks import SACNetworks, act_deterministic, make_networks_from_config
 from mjxvine.rundir.checkpoints import checkpoint_item, restore_actor_params, unflatten_params
 
@@ -53,8 +53,15 @@ def check_policy_file(spec: str, which: str = "best") -> Path:
   if not path.exists():
     what = "policy not found" if path.suffix == ".npz" else "no such run directory"
     raise PolicyError(f"{what}: {spec} (give oracle, random, a run dir or a .npz)")
+  if path.is_file() and path.suffix != ".npz":
+    raise PolicyError(f"{spec}: a file, but not an .npz policy file (give oracle, random, a "
+                      "run directory or an .npz written by python -m mjxvine.export; an "
+                      ".onnx graph runs with onnxruntime, not here)")
   if path.suffix == ".npz":
-    read_policy_file(path)
+    try:  # the robot's loader checks the arrays against the metadata, as a robot would
+      NumpyPolicy(*read_policy_file(path))
+    except PolicyFormatError as e:
+      raise PolicyFormatError(e if str(path) in str(e) else f"{path}: {e}") from None
   else:
     try:
       checkpoint_item(path, which)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mjxvine import atomic
 from mjxvine.evaluation.paper import PAPER, PAPER_RUNS, RUNS
 from mjxvine.formatting import fmt
 
@@ -109,13 +110,14 @@ def plot_trajectories(doc: dict, world, path) -> None:
   ax.legend(handles=handles + world_handles, loc="upper left", bbox_to_anchor=(1.01, 1.0),
             fontsize=8)
   ax.set_title(figure_title(doc), fontsize=10)
-  fig.savefig(path, dpi=110, bbox_inches="tight")
+  with atomic.atomic_path(path) as tmp:
+    fig.savefig(tmp, dpi=110, bbox_inches="tight")
   plt.close(fig)
 
 
 def write_results(doc: dict, world, out: Path) -> None:
   """out/results.json, out/results.md and out/trajectories.png of `doc` on `world`."""
   out.mkdir(parents=True, exist_ok=True)
-  (out / "results.json").write_text(json.dumps(doc))
-  (out / "results.md").write_text(results_markdown(doc))
+  atomic.write_text(out / "results.json", json.dumps(doc))
+  atomic.write_text(out / "results.md", results_markdown(doc))
   plot_trajectories(doc, world, out / "trajectories.png")

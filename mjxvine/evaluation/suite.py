@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from mjxvine import atomic
 from mjxvine.config import Config, replace
 from mjxvine.evaluation import paper
 from mjxvine.evaluation.metrics import summarize
@@ -71,8 +72,8 @@ def paper_suite(cfg: Config, policy_spec: str, out: Path, *, runs: int = paper.R
       report["robots"][f"{robot}_{r['lane']}F"] = r
 
   out.mkdir(parents=True, exist_ok=True)
-  (out / "report.json").write_text(json.dumps(report))
-  (out / "report.md").write_text(report_markdown(report, worlds))
+  atomic.write_text(out / "report.json", json.dumps(report))
+  atomic.write_text(out / "report.md", report_markdown(report, worlds))
   return report
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from mjxvine import atomic
 from mjxvine.config import replace
 from mjxvine.evaluation import paper
 from mjxvine.evaluation.report import metric_cell
@@ -40,8 +41,8 @@ def sweep_noise(cfg, policy_spec, world, out: Path, seed=0, which="best", member
     lines.append(f"| v mean +- std ({label}) | " + " | ".join(
         f"{table[k][row]['v_mean']:.2f} +- {table[k][row]['v_std']:.2f}" for k in table) + " |")
   out.mkdir(parents=True, exist_ok=True)
-  (out / "noise.md").write_text("\n".join(lines) + "\n")
-  (out / "noise.json").write_text(json.dumps({str(k): v for k, v in table.items()}))
+  atomic.write_text(out / "noise.md", "\n".join(lines) + "\n")
+  atomic.write_text(out / "noise.json", json.dumps({str(k): v for k, v in table.items()}))
   _plot_noise(table, out / "noise.png")
   return table
 
@@ -59,7 +60,8 @@ def _plot_noise(table: dict, path: Path) -> None:
       ax.set_ylabel(f"{key} ({'m/s' if key == 'v' else 'rad/s'})")
   axes[0].legend()
   fig.tight_layout()
-  fig.savefig(path, dpi=110)
+  with atomic.atomic_path(path) as tmp:
+    fig.savefig(tmp, dpi=110)
   plt.close(fig)
 
 
@@ -84,14 +86,16 @@ def sweep_robots(cfg, policy_spec, world, out: Path, seed=0, which="best", membe
                  f"{fmt(r['time_to_eor_s'], 1)} ({paper.PAPER_ROBOT_TIMES[(robot, lane)]}) | "
                  f"{metric_cell(r, 'mae_m')} ({p[1]}) | {metric_cell(r, 'rmse_m')} ({p[2]}) |")
   out.mkdir(parents=True, exist_ok=True)
-  (out / "robots.md").write_text("\n".join(lines) + "\n")
-  (out / "robots.json").write_text(json.dumps({f"{k[0]}_{k[1]}": v for k, v in table.items()}))
+  atomic.write_text(out / "robots.md", "\n".join(lines) + "\n")
+  atomic.write_text(out / "robots.json",
+                    json.dumps({f"{k[0]}_{k[1]}": v for k, v in table.items()}))
   import matplotlib.pyplot as plt
   fig, ax = plt.subplots(figsize=(6, 3.5))
   labels = [f"{r} {l}" for (r, l) in table]
   ax.bar(labels, [v["mae_m"] or 0 for v in table.values()], color="tab:green")
   ax.set_ylabel("MAE (m)")
   fig.tight_layout()
-  fig.savefig(out / "robots.png", dpi=110)
+  with atomic.atomic_path(out / "robots.png") as tmp:
+    fig.savefig(tmp, dpi=110)
   plt.close(fig)
   return table

@@ -66,11 +66,20 @@ class ResumeRefused(ValueError):
 
 # ---------------------------------------------------------------------- the run's record
 RUN_RECORD = "run.json"  # the config the run started with, apart from the editable config.yaml
-# the keys a resume may change: the budget and what runs around the training
-RESUME_FREE = ("train.total_env_steps", "train.max_minutes", "train.eval_every_chunks",
-               "eval.runs_after_train")
+# the keys a resume may change: the budget and what runs around the training (evaluations,
+# checkpoint cadence, the choice), never the networks, images, replay, envs or members
+RESUME_FREE = ("train.total_env_steps", "train.max_minutes", "train.checkpoint_every_chunks",
+               "train.eval_every_chunks", "train.eval_starts", "train.video",
+               "train.keep_eval_policies", "train.select_worlds", "train.select_world_seed",
+               "train.select_candidates", "train.select_runs", "train.select_noise_factors",
+               "eval.*")
+
+
+def resume_may_change(key: str) -> bool:
+  """Whether a resume may change config key "section.key" (`RESUME_FREE`)."""
+  return key in RESUME_FREE or f"{key.split('.')[0]}.*" in RESUME_FREE
 # what a run writes besides its logs: set aside together when it starts afresh
-RUN_OUTPUTS = ("checkpoints", "best.json", "best_members", "eval_policies", "selection.json",
+RUN_OUTPUTS = ("checkpoints", "checkpoints-broken", "best.json", "best_members", "eval_policies", "selection.json",
                "selected.npz", "eval")
 
 
@@ -102,7 +111,7 @@ def refuse_changes(run_dir: Path, cfg: Config, base: Config) -> None:
   """ResumeRefused, naming the keys and their values, when a resume would change more
   than `RESUME_FREE` (network, image, replay, ... settings: another run)."""
   original = original_config(run_dir) or base
-  changed = [k for k in changed_keys(original, cfg) if k not in RESUME_FREE]
+  changed = [k for k in changed_keys(original, cfg) if not resume_may_change(k)]
   if changed:
     value = lambda c, k: getattr(getattr(c, k.split(".")[0]), k.split(".")[1])
     what = ", ".join(f"{k} {value(original, k)!r} -> {value(cfg, k)!r}" for k in changed)

@@ -287,14 +287,14 @@ def unflatten_params(arrays: dict) -> dict:
   return tree
 
 
-# Written by `mjxvine.select` in a run dir: the validation worlds' choice of the best policy.
+# Written by `mjxvine.evaluation.choice` in a run dir: the validation worlds' choice of the best policy.
 SELECTION_JSON = "selection.json"
 SELECTED_POLICY = "selected.npz"
 
 
 def selected_policy(path: str | Path, which: str = "best") -> Path | None:
   """RUN/selected.npz when `path` is a run dir (or its checkpoints dir) whose best policy
-  was chosen on validation worlds (`mjxvine.select`) and `which` is "best"; else None."""
+  was chosen on validation worlds (`mjxvine.evaluation.choice`) and `which` is "best"; else None."""
   path = Path(path).expanduser()
   run = path.parent if path.name == "checkpoints" else path
   chosen = run / SELECTED_POLICY
@@ -330,9 +330,8 @@ def restore_actor_params(path: str | Path, which: str = "best",
     restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree_meta)
     tree = ckpt.restore(item, args=ocp.args.PyTreeRestore(restore_args=restore_args))
   except Exception as e:  # noqa: BLE001 - orbax fails in many ways on damaged files
-    first = (str(e).splitlines() or [""])[0][:120]
     raise ValueError(f"{item}: not a readable orbax checkpoint ({type(e).__name__}: "
-                     f"{first})") from None
+                     f"{_first_line(e)})") from None
   # the evaluated actor (`LearnerState.policy_params`); checkpoints from before it had
   # only the learning actor
   actor = _find_key(tree, "policy_params")

@@ -168,5 +168,6 @@ def plot_learning_curve(run_dir: Path) -> None:
   if len(members) > 1:
     axes[0].legend(fontsize=7, loc="upper left")
   fig.tight_layout()
-  fig.savefig(run_dir / "learning_curve.png", dpi=100)
+  with atomic.atomic_path(run_dir / "learning_curve.png") as tmp:
+    fig.savefig(tmp, dpi=100)
   plt.close(fig)

@@ -17,6 +17,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
+from mjxvine import atomic
 from mjxvine.config import Config
 from mjxvine.deploy.export import export_actor, meta_from_config
 from mjxvine.evaluation import choice, starts
@@ -81,7 +82,7 @@ class MemberBest:
       export_member(self.cfg, actor, k, self.dir / f"member{k}.npz", chunk, env_steps)
       self.scores[str(k)] = {"chunk": chunk, "env_steps": env_steps,
                              **{n: v for n, v in rows[k].items() if n != "best"}}
-    self.json.write_text(json.dumps(self.scores, indent=1))
+    atomic.write_text(self.json, json.dumps(self.scores, indent=1))
 
 
 class FreshStartEvaluation:

@@ -8,10 +8,11 @@ end closes the logs, draws the learning curve, chooses the policy on validation 
 (`mjxvine.training.report`). `train.num_seeds` seeds times the `train.sweep` grid train at
 once (vmap); envs and replay are split over the devices (`mjxvine.training.parallel`).
 
-Run directory: config.yaml (resolved), metrics.jsonl, TensorBoard events (tb/),
-checkpoints/ (orbax, `mjxvine.rundir.checkpoints`), learning_curve.png, eval/ (the final
-evaluation report), lock (held while a process trains there). Signals, the lock, write
-failures and the exit codes: `mjxvine.rundir`.
+Run directory: config.yaml (resolved), run.json (the config it started with, which a
+resume is held to), metrics.jsonl, TensorBoard events (tb/), checkpoints/ (orbax,
+`mjxvine.rundir.checkpoints`; broken ones moved to checkpoints-broken/),
+learning_curve.png, eval/ (the final evaluation report), lock (held while a process trains
+there). Signals, the lock, write failures and the exit codes: `mjxvine.rundir`.
 """
 
 from __future__ import annotations
@@ -178,7 +179,9 @@ def _restore(run_dir: Path, ckpt: Checkpoints, ts, restart: bool, primary: bool,
   """(chunk, TrainState) to resume from: the newest intact checkpoint, else the best one;
   None to start afresh: a run with no checkpoint yet, or, with `restart`, one whose
   checkpoints are all broken (its outputs set aside first). ResumeRefused otherwise."""
-  had = bool(ckpt.manager.all_steps() or ckpt.best_manager.all_steps())
+  broken = run_dir / "checkpoints-broken"
+  had = bool(ckpt.manager.all_steps() or ckpt.best_manager.all_steps() or broken.exists()
+             or (run_dir / "best.json").exists())
   restored = ckpt.restore(ts)
   if restored is None and ckpt.best_manager.all_steps():
     restored = ckpt.restore(ts, best=True)
@@ -189,7 +192,6 @@ def _restore(run_dir: Path, ckpt: Checkpoints, ts, restart: bool, primary: bool,
     if not had:
       tell(f"no checkpoint in {run_dir} yet; starting the run afresh")
     return restored
-  broken = run_dir / "checkpoints-broken"
   if not restart:
     raise ResumeRefused(f"--resume {run_dir}: no checkpoint of it can be restored (the "
                         f"broken ones are in {broken}); --restart starts the run afresh "

@@ -19,6 +19,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from mjxvine.atomic import OutputError, atomic_path, check_output, write_text
 from mjxvine.config import add_config_args, config_from_args
 from mjxvine.deploy import PolicyFormatError, read_policy_file
 from mjxvine.worlds.build import build_spec, terrain_height
@@ -53,10 +54,11 @@ def write_depth(model, world, cfg, pose, out: Path) -> None:
   mx, dx = mjx.put_model(model), mjx.put_data(model, data)
   image = np.asarray(jax.jit(lambda m, d: depth_cam.render_depth(cam, m, d))(mx, dx))
   noisy = np.asarray(depth_cam.add_noise(image, jax.random.PRNGKey(0), cfg.camera, 1.0))
-  np.save(out / "depth.npy", image.astype(np.float32))
-  np.save(out / "depth_noisy.npy", noisy.astype(np.float32))
+  for name, array in (("depth.npy", image), ("depth_noisy.npy", noisy)):
+    with atomic_path(out / name) as tmp:
+      np.save(tmp, array.astype(np.float32))
   cid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "depth")
-  (out / "camera.json").write_text(json.dumps({
+  write_text(out / "camera.json", json.dumps({
       "pos": data.cam_xpos[cid].tolist(), "xmat": data.cam_xmat[cid].tolist(),
       "fovx_deg": cfg.camera.fovx_deg, "fovy_deg": cfg.camera.fovy_deg,
       "width": cfg.camera.width, "height": cfg.camera.height,
@@ -70,7 +72,8 @@ def write_depth(model, world, cfg, pose, out: Path) -> None:
   fig.colorbar(im, ax=axes, label="z-depth [m]", shrink=0.8)
   fig.suptitle(f"camera at x={pose[0]:.2f} y={pose[1]:.2f} yaw={pose[2]:.2f}: "
                f"{cfg.camera.height}x{cfg.camera.width} px, fovx {cfg.camera.fovx_deg:g} deg")
-  fig.savefig(out / "depth.png", dpi=100)
+  with atomic_path(out / "depth.png") as tmp:
+    fig.savefig(tmp, dpi=100)
   plt.close(fig)
 
 
@@ -126,13 +129,16 @@ def main(argv=None) -> int:
       print(f"error: {e}", file=sys.stderr)
       return 2
   cfg = config_from_args(args, extra)
-  world = make_world(str(args.seed), cfg.world, kind=args.kind)
-  out = Path(args.out)
-  out.mkdir(parents=True, exist_ok=True)
+  try:
+    out = check_output(args.out, "--out", directory=True)
+    world = make_world(str(args.seed), cfg.world, kind=args.kind, flag="--seed")
+  except (OutputError, ValueError) as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
   spec = build_spec(world, cfg)
   model = spec.compile()
-  (out / "world.xml").write_text(spec.to_xml())
-  (out / "world.json").write_text(json.dumps(world.to_json(cfg.robot.name), indent=1))
+  write_text(out / "world.xml", spec.to_xml())
+  write_text(out / "world.json", json.dumps(world.to_json(cfg.robot.name), indent=1))
   save_map(world, out / "world.png", pose=pose, robot=ROBOTS[cfg.robot.name],
            fovx_deg=cfg.camera.fovx_deg, max_depth_m=cfg.camera.max_depth_m)
   print(f"{args.kind} world seed {args.seed} ({cfg.robot.name}): {len(world.plant_xy)} plants, "

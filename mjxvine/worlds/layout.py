@@ -282,21 +282,79 @@ def world_extent(cfg: WorldConfig) -> tuple[float, float, float, float]:
   return (-m, length + m, -half_y - m, half_y + 2 * cfg.curve_amplitude_m + m)
 
 
+class WorldFileError(ValueError):
+  """A world file that is not one `save_world` wrote: one line naming the file and fault."""
+
+
+MAX_SEED = 2**32 - 1  # numpy's seeds: a larger one would silently wrap
+
+
 def save_world(world: Vineyard, path: str | Path) -> None:
-  """Saves every array of a world to JSON (exact float64 round trip)."""
+  """Saves every array of a world to JSON (exact float64 round trip), atomically."""
+  from mjxvine import atomic
   d = {f.name: getattr(world, f.name) for f in dataclasses.fields(world)}
   d["lanes"] = [{f.name: (v.tolist() if isinstance(v, np.ndarray) else v)
                  for f in dataclasses.fields(l) for v in [getattr(l, f.name)]}
                 for l in world.lanes]
   d = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in d.items()}
-  Path(path).write_text(json.dumps(d))
+  atomic.write_text(path, json.dumps(d))
+
+
+def _array(path: Path, name: str, value, shape: tuple) -> np.ndarray:
+  """`value` as a finite float array of `shape` (-1: any length), else WorldFileError."""
+  try:
+    a = np.asarray(value, np.float64)
+  except (TypeError, ValueError):
+    raise WorldFileError(f"{path}: {name} is not an array of numbers") from None
+  if a.ndim != len(shape) or any(w != -1 and n != w for n, w in zip(a.shape, shape)):
+    want = "x".join("N" if w == -1 else str(w) for w in shape) or "a number"
+    raise WorldFileError(f"{path}: {name} has shape {a.shape}, expected ({want})")
+  if not np.all(np.isfinite(a)):
+    raise WorldFileError(f"{path}: {name} has NaN or infinite values")
+  return a
 
 
 def load_world(path: str | Path) -> Vineyard:
-  """Loads a world saved by `save_world`."""
-  d = json.loads(Path(path).read_text())
-  lanes = tuple(Lane(**{k: (np.asarray(v) if isinstance(v, list) else v) for k, v in l.items()})
-                for l in d.pop("lanes"))
-  d.update({k: np.asarray(v) for k, v in d.items() if isinstance(v, list)})
-  d["terrain_extent"] = tuple(d["terrain_extent"].tolist())
-  return Vineyard(lanes=lanes, **d)
+  """Loads a world saved by `save_world`. A file that is not one (unreadable, not JSON,
+  fields missing, misshapen or non-finite arrays) raises WorldFileError naming it."""
+  path = Path(path)
+  try:
+    d = json.loads(path.read_text(encoding="utf-8"))
+  except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    raise WorldFileError(f"{path}: not a world file (not JSON: {e})") from None
+  except OSError as e:
+    raise WorldFileError(f"{path}: cannot be read ({e.strerror})") from None
+  fields = {f.name for f in dataclasses.fields(Vineyard)}
+  if not isinstance(d, dict) or not fields <= set(d):
+    missing = sorted(fields - set(d)) if isinstance(d, dict) else ["everything"]
+    raise WorldFileError(f"{path}: not a world file (python -m mjxvine.worlds writes one); "
+                         f"missing {', '.join(missing)}")
+  lane_fields = {f.name for f in dataclasses.fields(Lane)}
+  if not isinstance(d["lanes"], list) or not d["lanes"] or not all(
+      isinstance(l, dict) and set(l) == lane_fields for l in d["lanes"]):
+    raise WorldFileError(f"{path}: lanes must be a non-empty list of lanes with "
+                         f"{', '.join(sorted(lane_fields))}")
+  try:
+    lanes = tuple(Lane(id=int(l["id"]), shape=str(l["shape"]), left_row=int(l["left_row"]),
+                       right_row=int(l["right_row"]),
+                       centerline=_array(path, f"lane {l['id']} centerline", l["centerline"],
+                                         (-1, 2)),
+                       eor_forward=_array(path, "eor_forward", l["eor_forward"], (2,)),
+                       eor_reverse=_array(path, "eor_reverse", l["eor_reverse"], (2,)))
+                  for l in d.pop("lanes"))
+    plants = len(d["plant_xy"]) if isinstance(d["plant_xy"], list) else -1
+    shapes = {"row_y0": (-1,), "plant_xy": (plants, 2), "plant_yaw": (plants,),
+              "plant_row": (plants,), "trunk_height": (plants,), "canopy_half": (plants, 3),
+              "canopy_z": (plants,), "terrain": (-1, -1), "terrain_extent": (4,)}
+    for name, shape in shapes.items():
+      d[name] = _array(path, name, d[name], shape)
+    d["plant_row"] = d["plant_row"].astype(np.int64)
+    for name in ("inter_row_m", "spacing_m", "length_m", "trunk_radius"):
+      d[name] = float(_array(path, name, d[name], ()))
+    d["seed"], d["kind"] = int(d["seed"]), str(d["kind"])
+    d["terrain_extent"] = tuple(d["terrain_extent"].tolist())
+    return Vineyard(lanes=lanes, **d)
+  except (TypeError, ValueError, KeyError) as e:
+    if isinstance(e, WorldFileError):
+      raise
+    raise WorldFileError(f"{path}: not a world file ({type(e).__name__}: {e})") from None

@@ -8,6 +8,7 @@ import numpy as np
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Polygon
 
+from mjxvine.atomic import atomic_path
 from mjxvine.worlds.layout import Vineyard
 from mjxvine.worlds.robots import RobotSpec
 
@@ -93,5 +94,6 @@ def save_map(world: Vineyard, path, title: str | None = None, *, pose=None,
                aspect=40, label="terrain height [m]")
   ax.set_title(title or f"{world.kind} vineyard, seed {world.seed}: inter-row "
                f"{world.inter_row_m:.2f} m, spacing {world.spacing_m:.2f} m")
-  fig.savefig(path, dpi=110, bbox_inches="tight")
+  with atomic_path(path) as tmp:
+    fig.savefig(tmp, dpi=110, bbox_inches="tight")
   plt.close(fig)
