@@ -45,13 +45,14 @@ def check_output(path: str | Path, flag: str, directory: bool = False) -> Path:
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
   """Yields a temporary path beside `path` to write to (with the same suffix, for writers
-  that go by it); on success it replaces `path`, on an exception it is removed and `path`
-  is untouched."""
+  that go by it); on success it replaces `path` (if anything was written there), on an
+  exception it is removed and `path` is untouched."""
   path = Path(path)
   tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
   try:
     yield tmp
-    os.replace(tmp, path)
+    if tmp.exists():
+      os.replace(tmp, path)
   finally:
     with contextlib.suppress(FileNotFoundError):
       tmp.unlink()

@@ -276,6 +276,7 @@ def test_resume_with_nothing_intact_is_refused_then_restarts_on_request(first_ru
   assert "starting afresh (--restart)" in err
   previous = [p for p in copy.iterdir() if p.name.startswith("previous-")]
   assert len(previous) == 1 and (previous[0] / "best.json").is_file()
+  assert len((previous[0] / "metrics.jsonl").read_text().splitlines()) == 4  # kept whole
   rows = [json.loads(l) for l in (copy / "metrics.jsonl").read_text().splitlines()]
   assert rows[0]["chunk"] == 1 and rows[-1]["env_steps"] == 80
   # the new best checkpoint belongs to the new run (its own best.json), the lock is gone

@@ -30,6 +30,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from mjxvine import atomic
+
 GL_BACKENDS = ("egl", "osmesa")  # headless, in order of preference
 INSTALL_GL = ("no OpenGL for headless rendering: install EGL (Debian/Ubuntu: apt-get install "
               "libegl1 libgl1-mesa-dri) or OSMesa (apt-get install libosmesa6), or set "
@@ -295,25 +297,29 @@ def write_video(frames: Iterable[np.ndarray], mp4: str | Path | None = None,
     if path is not None:
       Path(path).parent.mkdir(parents=True, exist_ok=True)
   writer, images, count = None, [], 0
-  try:
-    for frame in frames:
-      if mp4 is not None:
-        if writer is None:
-          writer = _mp4_writer(Path(mp4), frame.shape[1], frame.shape[0], fps)
-        writer.send(np.ascontiguousarray(frame))
-      if gif is not None and count % gif_every == 0:
-        img = Image.fromarray(frame)
-        if img.width != gif_width:
-          img = img.resize((gif_width, round(img.height * gif_width / img.width)),
-                           Image.Resampling.BILINEAR)
-        images.append(img.quantize(colors=gif_colors, method=Image.Quantize.MEDIANCUT))
-      count += 1
-  finally:
-    if writer is not None:
-      writer.close()
+  # both files written whole or not at all: a failed render keeps an earlier video
+  with contextlib.ExitStack() as files:
+    mp4_tmp = files.enter_context(atomic.atomic_path(mp4)) if mp4 is not None else None
+    try:
+      for frame in frames:
+        if mp4 is not None:
+          if writer is None:
+            writer = _mp4_writer(mp4_tmp, frame.shape[1], frame.shape[0], fps)
+          writer.send(np.ascontiguousarray(frame))
+        if gif is not None and count % gif_every == 0:
+          img = Image.fromarray(frame)
+          if img.width != gif_width:
+            img = img.resize((gif_width, round(img.height * gif_width / img.width)),
+                             Image.Resampling.BILINEAR)
+          images.append(img.quantize(colors=gif_colors, method=Image.Quantize.MEDIANCUT))
+        count += 1
+    finally:
+      if writer is not None:
+        writer.close()
   if gif is not None and images:
-    images[0].save(gif, save_all=True, append_images=images[1:], loop=0,
-                   duration=round(1000 * gif_every / fps), optimize=True)
+    with atomic.atomic_path(gif) as tmp:
+      images[0].save(tmp, save_all=True, append_images=images[1:], loop=0,
+                     duration=round(1000 * gif_every / fps), optimize=True)
   return count
 
 

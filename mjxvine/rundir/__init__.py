@@ -78,9 +78,12 @@ RESUME_FREE = ("train.total_env_steps", "train.max_minutes", "train.checkpoint_e
 def resume_may_change(key: str) -> bool:
   """Whether a resume may change config key "section.key" (`RESUME_FREE`)."""
   return key in RESUME_FREE or f"{key.split('.')[0]}.*" in RESUME_FREE
-# what a run writes besides its logs: set aside together when it starts afresh
-RUN_OUTPUTS = ("checkpoints", "checkpoints-broken", "best.json", "best_members", "eval_policies", "selection.json",
-               "selected.npz", "eval")
+
+
+# what a run writes: set aside together when it starts afresh in its directory
+RUN_OUTPUTS = ("checkpoints", "checkpoints-broken", "best.json", "best_members",
+               "eval_policies", "selection.json", "selected.npz", "eval", "metrics.jsonl",
+               "tb", "learning_curve.png")
 
 
 def write_run_record(run_dir: Path, cfg: Config) -> None:
@@ -116,14 +119,17 @@ def refuse_changes(run_dir: Path, cfg: Config, base: Config) -> None:
     value = lambda c, k: getattr(getattr(c, k.split(".")[0]), k.split(".")[1])
     what = ", ".join(f"{k} {value(original, k)!r} -> {value(cfg, k)!r}" for k in changed)
     raise ResumeRefused(f"--resume {run_dir}: the run started with other settings ({what}); "
-                        f"a resume may change only {', '.join(RESUME_FREE)} (restore "
-                        "config.yaml, or train a new run)")
+                        "a resume may change only its budget and what runs around the "
+                        "training (train.total_env_steps, train.max_minutes, the "
+                        "evaluations, the choice, eval.*): restore config.yaml, or train a "
+                        "new run")
 
 
 def set_aside(run_dir: Path) -> Path | None:
-  """Moves what a run wrote besides its logs (`RUN_OUTPUTS`) to RUN_DIR/previous-<time>/,
-  for a run that starts afresh in its directory: nothing is lost, and no old best
-  checkpoint sits beside the new networks. Returns that directory (None: nothing to move)."""
+  """Moves what a run wrote (`RUN_OUTPUTS`: checkpoints, scores, policies, logs) to
+  RUN_DIR/previous-<time>/, for a run that starts afresh in its directory: nothing is
+  lost, and no old best checkpoint sits beside the new networks. Returns that directory
+  (None: nothing to move)."""
   run_dir = Path(run_dir)
   present = [run_dir / n for n in RUN_OUTPUTS if (run_dir / n).exists()]
   if not present:
