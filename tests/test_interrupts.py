@@ -20,6 +20,7 @@ import pytest
 from mjxvine import rundir
 from mjxvine import train as train_mod
 from mjxvine.training import programs
+from mjxvine.config import load_config
 from mjxvine.rundir.checkpoints import Checkpoints
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -149,7 +150,7 @@ def test_a_failed_checkpoint_write_is_one_line_and_keeps_the_previous(tmp_path, 
   assert not list((run / "checkpoints").glob("*.orbax-checkpoint-tmp*"))  # cleaned up
   monkeypatch.setattr(ocp.CheckpointManager, "save", real)
   # the previous checkpoint restores; a partial one left by a kill is removed on resume
-  sac, init_fn, _ = programs.compiled_trainer(train_mod.load_config(run / "config.yaml"))
+  sac, init_fn, _ = programs.compiled_trainer(load_config(run / "config.yaml"))
   step, ts = Checkpoints(run, False).restore(init_fn(jax.random.split(jax.random.PRNGKey(0), 1)))
   assert step == 1 and int(ts.env_steps) == 20
   (run / "checkpoints" / "2.orbax-checkpoint-tmp-7").mkdir()
