@@ -27,30 +27,45 @@ world's mean of rows). RUN/selection.json records every candidate's scores and t
 and is written after each candidate, so an interrupted selection resumes; RUN/selected.npz
 is the chosen policy, which a run dir's "best" policy means from then on
 (`checkpoints.selected_policy`: `evaluate --policy RUN`, `export --checkpoint RUN`).
+Of a run of several members (`--seeds`, sweeps) each member chooses its own, from its own
+evaluations and kept policies: RUN/selected_members/member<k>.npz and selection<k>.json
+(`evaluate --policy RUN --member K`).
 No test world is driven. The library is `mjxvine.evaluation.choice`.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
-from mjxvine.config import ConfigError, add_config_args, load_config
+from mjxvine.config import ConfigError, add_config_args, load_config, parse_sweep
 
 
 def main(argv=None, prog: str = "python -m mjxvine.choose") -> int:
   p = argparse.ArgumentParser(prog=prog, description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("run_dir", type=Path)
+  p.add_argument("--member", type=int, default=None, metavar="K",
+                 help="of a run of several members (--seeds, sweeps): choose for member K "
+                 "alone (default: for each member)")
   add_config_args(p)
   args = p.parse_args(argv)
   try:
     if not (args.run_dir / "config.yaml").is_file():
       raise FileNotFoundError(f"{args.run_dir}: no config.yaml (not a run directory)")
     cfg = load_config(args.config or str(args.run_dir / "config.yaml"), args.overrides)
+    grid = parse_sweep(cfg.train.sweep)
+    count = cfg.train.num_seeds * math.prod(len(v) for v in grid.values())
+    if args.member is not None and not 0 <= args.member < count:
+      raise ValueError(f"--member {args.member}: the run trained {count} member(s), 0 to "
+                       f"{count - 1}")
     from mjxvine.evaluation import choice  # (jax and the env: after the cheap checks)
-    choice.select(cfg, args.run_dir)
+    members = (None,) if count == 1 else (
+        (args.member,) if args.member is not None else range(count))
+    for k in members:
+      choice.select(cfg, args.run_dir, member=k)
   except ConfigError as e:
     print(f"config error: {e}", file=sys.stderr)
     return 2

@@ -267,23 +267,28 @@ class TrainConfig:
                   "e.g. 'sac.learning_rate=1e-4,1e-3; sac.alpha=0.1,0.2'")
   devices: int = _f(0, 0, 1 << 16, doc="devices the envs, replay and batches are split over "
                     "(0: all; see mjxvine.training.parallel)")
-  max_minutes: float = _f(0.0, 0.0, 1e6, doc="wall-clock budget: stop (checkpoint, evaluate) "
-                          "after the chunk that passes it (0: none)")
+  max_minutes: float = _f(0.0, 0.0, 1e6, doc="a safety net on the wall-clock: stop "
+                          "(checkpoint, evaluate) after the chunk that passes it, and say so "
+                          "in the last line and RUN/run.json (0: none). The budget is "
+                          "total_env_steps: the same command then gives the same policy")
   eval_every_chunks: int = _f(0, 0, 1 << 20, doc="deterministic evaluation from fresh starts "
                               "of the training pool, forward and reverse apart, every this "
                               "many chunks and at the end; keeps checkpoints/best (0: only at "
                               "the end)")
   eval_starts: int = _f(32, 1, 4096, doc="fresh starts per direction of that evaluation")
-  keep_eval_policies: bool = _f(False, doc="write member 0's evaluated policy at every such "
-                                "evaluation as RUN/eval_policies/env<steps>.npz (a policy file: "
+  keep_eval_policies: bool = _f(False, doc="write the evaluated policy at every such "
+                                "evaluation as RUN/eval_policies/env<steps>.npz (of a run of "
+                                "several members, each member's in eval_policies/member<k>/; "
+                                "a policy file: "
                                 "under 0.1 MB for the CPU configs' networks, 0.4 MB for the "
                                 "paper's), to compare checkpoint choices afterwards")
   select_worlds: int = _f(0, 0, 64, doc="choose the best checkpoint on this many "
                           "validation worlds (test-kind worlds of seeds select_world_seed "
                           "and up, never a test table's) among the train.select_candidates "
-                          "best fresh-start evaluations, after training (mjxvine.evaluation.choice; "
-                          "writes their policies as train.keep_eval_policies does; 0: the "
-                          "best fresh-start evaluation is the best checkpoint)")
+                          "best fresh-start evaluations, after training, for each member "
+                          "(mjxvine.evaluation.choice; writes their policies as "
+                          "train.keep_eval_policies does; 0: the best fresh-start "
+                          "evaluation is the best checkpoint)")
   select_world_seed: int = _f(100, 100, 2**31 - 1, doc="the first validation world's seed "
                               "(test tables use seeds below 100)")
   select_candidates: int = _f(4, 1, 1024, doc="fresh-start evaluations scored on the "
@@ -405,9 +410,6 @@ def _check_cross_fields(cfg: Config) -> None:
     raise ConfigError(f"env.physics_dt = {cfg.env.physics_dt}: must divide env.control_dt "
                       f"= {cfg.env.control_dt}")
   parse_sweep(cfg.train.sweep)
-  if cfg.train.select_worlds and (cfg.train.num_seeds > 1 or cfg.train.sweep):
-    raise ConfigError(f"train.select_worlds = {cfg.train.select_worlds}: chooses one "
-                      "member's policy; it needs train.num_seeds = 1 and no train.sweep")
   if cfg.train.video and cfg.eval.runs_after_train < 1:
     raise ConfigError("train.video = true: films the closing test-world runs, which need "
                       "eval.runs_after_train >= 1 (got 0)")

@@ -26,7 +26,7 @@ from mjxvine.atomic import OutputError, check_output
 from mjxvine.deploy.export import actor_arrays, check_actor_fits, export_actor, meta_from_config
 from mjxvine.deploy.numpy_policy import PolicyError
 from mjxvine.deploy.onnx import export_onnx
-from mjxvine.rundir import EXIT_USAGE, EXIT_WRITE
+from mjxvine.rundir import EXIT_USAGE, EXIT_WRITE, run_record
 from mjxvine.rundir.checkpoints import WHICH, restore_actor_params, run_dir_of
 from mjxvine.rundir.settings import policy_config
 
@@ -120,16 +120,20 @@ def export_run(args, src: Path) -> int:
     return EXIT_USAGE
   except (FileNotFoundError, KeyError, ValueError) as e:  # no, or a damaged, checkpoint
     return _fail(e.args[0] if e.args else str(e))  # a KeyError's str() is quoted
-  run_dir = run_dir_of(item)
+  run_dir = run_dir_of(item) or (src if (src / "config.yaml").is_file() else None)
   out = Path(args.out) if args.out else (run_dir or src) / f"policy.{args.format}"
+  meta = meta_from_config(cfg)
+  tower = run_record(run_dir).get("conv_tower") if run_dir else None
+  if tower:  # the tower it trained with, as its run recorded it
+    meta["conv_tower"] = tower
   try:
     check_output(out, "--out")
     if args.format == "onnx":
-      arrays = actor_arrays(actor, meta_from_config(cfg))
+      arrays = actor_arrays(actor, meta)
       write = lambda: export_onnx(arrays, out, preprocess=args.preprocess,
                                   invalid_depth=args.invalid_depth)
     else:
-      write = lambda: export_actor(actor, out, meta_from_config(cfg))
+      write = lambda: export_actor(actor, out, meta)
     failed = _write(write, out, "any previous file there is unchanged")
   except OutputError as e:
     return _fail(str(e))

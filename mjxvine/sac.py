@@ -183,6 +183,16 @@ def learner_conv_impl(choice: str = "auto") -> str:
   return "native" if native.available() else "shift"
 
 
+def resolve_conv_impl(cfg):
+  """`cfg` (a `mjxvine.config.Config`) with `sac.conv_impl: auto` replaced by the tower it
+  takes here (`learner_conv_impl`): what a run records in its config.yaml, so that the
+  same config trains the same way, or refuses, on another machine."""
+  from mjxvine.config import replace  # pylint: disable=import-outside-toplevel
+  if cfg.sac.conv_impl != "auto":
+    return cfg
+  return replace(cfg, sac={"conv_impl": learner_conv_impl("auto")})
+
+
 def describe_conv_impl(choice: str = "auto") -> str:
   """`learner_conv_impl(choice)` in words, for a run's log: "native (avx512)", or "shift
   (native: <why not>)" where auto could not take the native tower."""

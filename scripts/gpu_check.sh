@@ -3,11 +3,11 @@
 # not cost the rest:
 #   1. experiments/jackal-gaps.yaml (the shipped agent's recipe) from seeds 0, 1 and 2,
 #      vmapped in one process, for STEPS env steps (default 80,000; a 2-core CPU trains
-#      70,000-150,000 in the recipe's 52 minutes); each member's best actor is chosen by
-#      its own training-time evaluations (RUN/best_members/member<k>.npz), never by a
-#      test world;
-#   2. the paper's suite (`evaluate --suite paper`) of each member's best actor, the three
-#      at once.
+#      70,000-150,000 in the recipe's 52 minutes); each member chooses its own checkpoint
+#      on the recipe's validation worlds (train.select_worlds:
+#      RUN/selected_members/member<k>.npz), never on a test world;
+#   2. the paper's suite (`evaluate --suite paper`) of each member's chosen actor, the
+#      three at once.
 # Results: $OUT/results.tgz (the run directory without checkpoints and TensorBoard
 # events, the suites' reports) and $OUT/gpu_check.log.
 #
@@ -32,11 +32,12 @@ if [ "${TINY:-0}" = 1 ]; then
     --set env.max_steps=40 --set sac.batch_size=16 --set sac.buffer_size=2048
     --set sac.warmup_steps=100 --set sac.grad_steps_per_iter=1 --set train.total_env_steps=300
     --set train.eval_every_chunks=2 --set train.eval_starts=2 --set eval.max_steps=40
-    --set world.test_length_m=10 --set train.iters_per_chunk=5"
-  MEMBERS="0"; T_TRAIN=300; T_EVAL=400; MINUTES=3
+    --set world.test_length_m=10 --set train.iters_per_chunk=5 --set train.select_worlds=1
+    --set train.select_runs=1 --set train.select_candidates=2"
+  MEMBERS="0"; T_TRAIN=900; T_EVAL=600; MINUTES=10
 else
   TRAIN="$TRAIN --set train.total_env_steps=${STEPS:-80000}"
-  T_TRAIN=${T_TRAIN:-370}; T_EVAL=${T_EVAL:-200}; MINUTES=${MINUTES:-5}
+  T_TRAIN=${T_TRAIN:-540}; T_EVAL=${T_EVAL:-180}; MINUTES=${MINUTES:-5}  # the choice after training
 fi
 pack() {
   tar czf "$OUT/results.tgz" -C "$OUT" --exclude "res/*/tb" --exclude "res/*/checkpoints" res
@@ -51,13 +52,20 @@ XLA_PYTHON_CLIENT_MEM_FRACTION=0.5 timeout $T_TRAIN python -m mjxvine.train $TRA
 log "training: exit $? after $(( $(date +%s) - s )) s wall-clock"
 tr '\r' '\n' < "$RES/train.log" | grep -v "^$" | grep -v "step/s" | tail -12 >> "$RES/gpu_check.log"
 cat "$RUN/best_members/scores.json" >> "$RES/gpu_check.log" 2>/dev/null
+for k in $MEMBERS; do
+  python -c "import json, sys; r = json.load(open(sys.argv[1])); print('member', sys.argv[2],
+    'chose', r['selected'], 'env steps of', [c['env_steps'] for c in r['candidates']])" \
+    "$RUN/selected_members/selection$k.json" "$k" >> "$RES/gpu_check.log" 2>&1
+done
 pack
 
-log "the paper's suite of each member's best actor"
+log "the paper's suite of each member's chosen actor"
 for k in $MEMBERS; do
   ( s=$(date +%s)
+    policy="$RUN/selected_members/member$k.npz"
+    [ -f "$policy" ] || policy="$RUN/best_members/member$k.npz"  # no choice made: its best
     XLA_PYTHON_CLIENT_MEM_FRACTION=0.25 timeout $T_EVAL python -m mjxvine.evaluate \
-      --policy "$RUN/best_members/member$k.npz" --suite paper --out "$RES/suite-member$k" \
+      --policy "$policy" --suite paper --out "$RES/suite-member$k" \
       > "$RES/suite-member$k.log" 2>&1
     log "suite of member $k: exit $? after $(( $(date +%s) - s )) s" ) &
 done

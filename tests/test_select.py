@@ -131,7 +131,41 @@ def test_bad_requests_fail_in_one_line(selected_run, tmp_path, capsys):
   shutil.copy(run / "config.yaml", empty / "config.yaml")
   assert choose.main([str(empty)]) == 2
   assert "no evaluated policy" in capsys.readouterr().err
-  for bad, key in ((["train.select_world_seed=3"], "train.select_world_seed"),
-                   (["train.select_worlds=2", "train.num_seeds=2"], "train.select_worlds")):
-    with pytest.raises(ConfigError, match=key):
-      load_config("experiments/smoke.yaml", bad)
+  with pytest.raises(ConfigError, match="train.select_world_seed"):
+    load_config("experiments/smoke.yaml", ["train.select_world_seed=3"])
+  assert choose.main([str(run), "--member", "1"]) == 2
+  assert "--member 1: the run trained 1 member(s), 0 to 0" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # a vmapped 2-member trainer compiles: over 20 s on a 2-core CPU
+def test_each_member_of_a_seeds_run_chooses_its_own(tmp_path, capsys):
+  """`--seeds 2` with train.select_worlds: each member keeps its own evaluated policies,
+  is scored on the validation world from its own fresh-start evaluations, and gets its own
+  choice, which `--member K` of a run dir then means."""
+  run = tmp_path / "seeds"
+  row = train_mod.train(_cfg(80, *EVAL, *SELECT, "train.num_seeds=2"), run, quiet=True,
+                        evaluate_at_end=False)
+  rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+  for k in (0, 1):
+    kept = choice.kept_policies(run, k)
+    assert sorted(kept) == [40, 80]
+    record = json.loads((run / "selected_members" / f"selection{k}.json").read_text())
+    evals = {r["env_steps"]: r for r in rows if r["member"] == k and "eval_mae_m" in r}
+    assert {c["env_steps"]: c["trainer"]["eval_mae_m"] for c in record["candidates"]} == {
+        s: evals[s]["eval_mae_m"] for s in evals}
+    chosen = run / "selected_members" / f"member{k}.npz"
+    assert chosen.read_bytes() == kept[record["selected"]].read_bytes()
+    params, path = restore_actor_params(run, member=k)
+    assert path == chosen
+    np.testing.assert_array_equal(params["mean"]["kernel"],
+                                  read_policy_file(chosen)[0]["mean/kernel"])
+  # the members' kept policies differ: each member exports its own actor
+  a, b = (read_policy_file(choice.kept_policies(run, k)[80])[0]["mean/kernel"] for k in (0, 1))
+  assert not np.array_equal(a, b)
+  assert row["selected_env_steps"] == json.loads(
+      (run / "selected_members" / "selection0.json").read_text())["selected"]
+  assert not (run / "selection.json").exists() and restore_actor_params(run)[1] == (
+      run / "selected_members" / "member0.npz")
+  # the command line chooses again for one member, from its record (nothing driven again)
+  assert choose.main([str(run), "--member", "1"]) == 0
+  assert "member 1: selected the policy of" in capsys.readouterr().out

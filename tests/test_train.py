@@ -17,7 +17,7 @@ from mjxvine import rundir
 from mjxvine.training import iteration as trainer
 from mjxvine.rundir.checkpoints import Checkpoints
 from mjxvine.config import load_config
-from mjxvine.sac import learner_conv_impl
+from mjxvine.sac import describe_conv_impl, learner_conv_impl, resolve_conv_impl
 
 OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=2", "env.max_steps=30",
              "sac.batch_size=16", "sac.buffer_size=512", "sac.warmup_steps=40",
@@ -69,7 +69,11 @@ def test_run_writes_logs_checkpoints_and_curve(first_run):
   assert list((run / "tb").glob("events.out.tfevents.*"))
   assert (run / "learning_curve.png").stat().st_size > 5000
   assert sorted(int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit())[-1] == 4
-  assert load_config(run / "config.yaml") == _cfg(80, *EVAL)
+  # config.yaml: the run's config with the conv tower `auto` took here, said in its header
+  text = (run / "config.yaml").read_text()
+  assert text.startswith(f"# conv tower: {describe_conv_impl()}\n")
+  assert load_config(run / "config.yaml") == resolve_conv_impl(_cfg(80, *EVAL))
+  assert json.loads((run / "run.json").read_text())["conv_tower"] == describe_conv_impl()
 
 
 def test_resume_continues_and_survives_a_corrupt_checkpoint(first_run, tmp_path, capsys):
@@ -282,3 +286,33 @@ def test_resume_with_nothing_intact_is_refused_then_restarts_on_request(first_ru
   # the new best checkpoint belongs to the new run (its own best.json), the lock is gone
   assert json.loads((copy / "best.json").read_text())["chunk"] in (2, 4)
   assert not (copy / "lock").exists()
+
+
+def test_the_same_command_gives_the_same_policy_file(first_run, tmp_path):
+  """Two runs of one config and seed on one machine: the same policy file, bit for bit
+  (training is deterministic, and the file has no timestamps); it records the tower."""
+  from mjxvine.deploy import read_policy_file
+  from mjxvine.export import main as export_main
+  again = tmp_path / "again"
+  loop.train(_cfg(80, *EVAL), again, quiet=True, evaluate_at_end=False)
+  files = []
+  for run in (first_run[0], again):
+    out = tmp_path / f"{run.name}.npz"
+    assert export_main(["--checkpoint", str(run), "--out", str(out)]) == 0
+    files.append(out.read_bytes())
+  assert files[0] == files[1]
+  assert (again / "eval_policies" / "env80.npz").read_bytes() == (
+      first_run[0] / "eval_policies" / "env80.npz").read_bytes()
+  assert read_policy_file(tmp_path / "again.npz")[1]["conv_tower"] == describe_conv_impl()
+
+
+def test_a_wall_clock_stop_says_so_in_the_last_line_and_the_record(tmp_path, capsys):
+  run = tmp_path / "timed"
+  assert train_mod.main(["--config", "experiments/smoke.yaml", "--run-dir", str(run),
+                         "--no-eval", *sum((["--set", o] for o in OVERRIDES), []),
+                         "--set", "train.total_env_steps=80",
+                         "--set", "train.max_minutes=0.0001"]) == 0
+  last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+  assert last["stopped"].startswith("train.max_minutes = 0.0001 reached after chunk 1")
+  assert json.loads((run / "run.json").read_text())["stopped"] == last["stopped"]
+

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import re
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -97,9 +98,19 @@ def export_actor(actor_params: Any, path: str | Path, meta: dict) -> Path:
   path = Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
   with atomic.atomic_path(path) as tmp:  # a failed write keeps the previous file
-    with open(tmp, "wb") as f:  # a file object: numpy adds no ".npz" suffix
-      np.savez(f, **arrays, **{META_KEY: np.array(json.dumps(full))})
+    write_npz(tmp, {**arrays, META_KEY: np.array(json.dumps(full))})
   return path
+
+
+def write_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+  """`np.savez` with a fixed timestamp on every entry (numpy stamps the current time), so
+  that the same arrays give the same bytes: the same training command gives the same
+  policy file. `np.load` reads it as any .npz."""
+  with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf:
+    for name, value in arrays.items():
+      info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+      with zf.open(info, "w", force_zip64=True) as f:
+        np.lib.format.write_array(f, np.asanyarray(value), allow_pickle=False)
 
 
 def check_actor_fits(actor_params: Any, cfg: config_lib.Config) -> None:

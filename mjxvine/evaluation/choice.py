@@ -19,18 +19,17 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
 from pathlib import Path
 
 import numpy as np
 
-from mjxvine.atomic import write_text
+from mjxvine.atomic import write_bytes, write_text
 from mjxvine.config import Config
 from mjxvine.evaluation import paper
 from mjxvine.evaluation.metrics import summarize
 from mjxvine.evaluation.rollout import Cases, all_lanes, rollout_cases
 from mjxvine.formatting import fmt
-from mjxvine.rundir.checkpoints import SELECTED_POLICY, SELECTION_JSON
+from mjxvine.rundir.checkpoints import selection_files
 
 
 # ---------------------------------------------------------------------------- ranking rules
@@ -50,26 +49,28 @@ def rank(scores: dict) -> tuple:
 
 
 # ---------------------------------------------------------------------------- a run's policies
-def policy_file(run_dir: Path, env_steps: int) -> Path:
-  """RUN/eval_policies/env<steps>.npz: the policy evaluated at `env_steps`."""
-  return Path(run_dir) / "eval_policies" / f"env{env_steps}.npz"
+def policy_file(run_dir: Path, env_steps: int, member: int | None = None) -> Path:
+  """RUN/eval_policies/env<steps>.npz: the policy evaluated at `env_steps`; of one member
+  of a run of several, RUN/eval_policies/member<k>/env<steps>.npz."""
+  folder = Path(run_dir) / "eval_policies"
+  return (folder if member is None else folder / f"member{member}") / f"env{env_steps}.npz"
 
 
-def kept_policies(run_dir: Path) -> dict[int, Path]:
-  """{env steps: policy file} of RUN/eval_policies/."""
-  names = ((re.fullmatch(r"env(\d+)", f.stem), f)
-           for f in Path(run_dir).glob("eval_policies/env*.npz"))
+def kept_policies(run_dir: Path, member: int | None = None) -> dict[int, Path]:
+  """{env steps: policy file} of the run's (or one member's) kept policies."""
+  folder = policy_file(run_dir, 0, member).parent
+  names = ((re.fullmatch(r"env(\d+)", f.stem), f) for f in folder.glob("env*.npz"))
   return {int(m.group(1)): f for m, f in names if m}
 
 
-def trainer_evaluations(run_dir: Path) -> dict[int, dict]:
-  """{env steps: the eval_* values} of member 0's fresh-start evaluations, from
+def trainer_evaluations(run_dir: Path, member: int = 0) -> dict[int, dict]:
+  """{env steps: the eval_* values} of one member's fresh-start evaluations, from
   RUN/metrics.jsonl (the last row of a step wins: a resumed run rewrites its tail)."""
   out = {}
   path = Path(run_dir) / "metrics.jsonl"
   for line in path.read_text().splitlines() if path.is_file() else ():
     row = json.loads(line)
-    if row.get("member", 0) == 0 and "eval_success_forward" in row:
+    if row.get("member", 0) == member and "eval_success_forward" in row:
       out[int(row["env_steps"])] = {k: row[k] for k in row if k.startswith("eval_")}
   return out
 
@@ -142,30 +143,37 @@ def protocol(cfg: Config) -> dict:
 
 
 # ---------------------------------------------------------------------------- the choice
-def select(cfg: Config, run_dir: Path, say=print) -> dict:
-  """Chooses the run's best policy on the validation worlds (the module's docstring);
-  writes RUN/selection.json and RUN/selected.npz and returns the selection record:
-  {"protocol", "candidates": [{"env_steps", "trainer": eval_* values, "validation":
-  `score_policy`}, best first by `fresh_start_score`], "selected": env steps}."""
+def select(cfg: Config, run_dir: Path, say=print, member: int | None = None) -> dict:
+  """Chooses the run's best policy on the validation worlds (the module's docstring), or
+  one member's of a run of several (`member`: its own evaluations and kept policies);
+  writes the selection record and the chosen policy (`checkpoints.selection_files`:
+  RUN/selection.json and RUN/selected.npz, or RUN/selected_members/selection<k>.json and
+  member<k>.npz) and returns the record: {"protocol", "candidates": [{"env_steps",
+  "trainer": eval_* values, "validation": `score_policy`}, best first by
+  `fresh_start_score`], "selected": env steps}."""
   run_dir = Path(run_dir)
   if cfg.train.select_worlds < 1:
     raise ValueError(f"{run_dir}: train.select_worlds = 0 in its config: give --set "
                      "train.select_worlds=N (N validation worlds)")
-  evaluations, kept = trainer_evaluations(run_dir), kept_policies(run_dir)
+  evaluations = trainer_evaluations(run_dir, member or 0)
+  kept = kept_policies(run_dir, member)
   chosen = candidates(evaluations, set(kept), cfg.train.select_candidates)
   if not chosen:
-    raise FileNotFoundError(f"{run_dir}: no evaluated policy to choose from (RUN/"
-                            "eval_policies/env<steps>.npz beside the evaluations of "
-                            "metrics.jsonl)")
-  record_path = run_dir / SELECTION_JSON
+    where = policy_file(run_dir, 0, member).parent.relative_to(run_dir)
+    raise FileNotFoundError(f"{run_dir}: no evaluated policy to choose from (RUN/{where}/"
+                            "env<steps>.npz beside the evaluations of metrics.jsonl)")
+  record_path, selected_path = selection_files(run_dir, member)
+  selected_path.parent.mkdir(parents=True, exist_ok=True)
   old = json.loads(record_path.read_text()) if record_path.is_file() else {}
   record = {"protocol": protocol(cfg), "candidates": [], "selected": None}
   done = ({c["env_steps"]: c["validation"] for c in old.get("candidates", [])}
           if old.get("protocol") == record["protocol"] else {})
-  (run_dir / SELECTED_POLICY).unlink(missing_ok=True)  # an earlier choice, until this one
+  selected_path.unlink(missing_ok=True)  # an earlier choice, until this one
   worlds = validation_worlds(cfg)
-  say(f"choosing the best of {len(chosen)} evaluated policies ({', '.join(map(str, chosen))} "
-      f"env steps) on validation worlds {record['protocol']['worlds']}...")
+  who = "" if member is None else f"member {member}: "
+  say(f"{who}choosing the best of {len(chosen)} evaluated policies "
+      f"({', '.join(map(str, chosen))} env steps) on validation worlds "
+      f"{record['protocol']['worlds']}...")
   for steps in chosen:
     scores = done.get(steps) or score_policy(cfg, kept[steps], worlds, cfg.train.select_runs,
                                              cfg.train.select_noise_factors)
@@ -175,9 +183,9 @@ def select(cfg: Config, run_dir: Path, say=print) -> dict:
     say(f"  {steps:>8} env steps: {summary(scores)}")
   best = max(record["candidates"], key=lambda c: rank(c["validation"]))  # first of equals
   record["selected"] = best["env_steps"]
-  shutil.copyfile(kept[best["env_steps"]], run_dir / SELECTED_POLICY)
+  write_bytes(selected_path, kept[best["env_steps"]].read_bytes())
   write_text(record_path, json.dumps(record, indent=1))
-  say(f"selected the policy of {best['env_steps']} env steps: {run_dir / SELECTED_POLICY}")
+  say(f"{who}selected the policy of {best['env_steps']} env steps: {selected_path}")
   return record
 
 

@@ -86,10 +86,27 @@ RUN_OUTPUTS = ("checkpoints", "checkpoints-broken", "best.json", "best_members",
                "tb", "learning_curve.png")
 
 
-def write_run_record(run_dir: Path, cfg: Config) -> None:
-  """RUN_DIR/run.json: the config a run started with, and its hash."""
+def write_run_record(run_dir: Path, cfg: Config, **facts) -> None:
+  """RUN_DIR/run.json: the config a run started with, its hash, and `facts` of the run
+  (e.g. conv_tower="native (avx512)")."""
   atomic.write_text(Path(run_dir) / RUN_RECORD, json.dumps(
-      {"config_hash": config_hash(cfg), "config": to_dict(cfg)}, indent=1))
+      {"config_hash": config_hash(cfg), "config": to_dict(cfg), **facts}, indent=1))
+
+
+def run_record(run_dir: Path) -> dict:
+  """RUN_DIR/run.json as a dict ({} when there is none or it is unreadable)."""
+  try:
+    return json.loads((Path(run_dir) / RUN_RECORD).read_text())
+  except (OSError, ValueError):
+    return {}
+
+
+def record_fact(run_dir: Path, **facts) -> None:
+  """Adds `facts` to RUN_DIR/run.json (e.g. stopped={...} when train.max_minutes ended
+  the run); the recorded config stays as it was."""
+  record = run_record(run_dir)
+  if record:
+    atomic.write_text(Path(run_dir) / RUN_RECORD, json.dumps({**record, **facts}, indent=1))
 
 
 def original_config(run_dir: Path) -> Config | None:
@@ -110,10 +127,12 @@ def original_config(run_dir: Path) -> Config | None:
   return cfg
 
 
-def refuse_changes(run_dir: Path, cfg: Config, base: Config) -> None:
+def refuse_changes(run_dir: Path, cfg: Config, base: Config, normalize=lambda c: c) -> None:
   """ResumeRefused, naming the keys and their values, when a resume would change more
-  than `RESUME_FREE` (network, image, replay, ... settings: another run)."""
-  original = original_config(run_dir) or base
+  than `RESUME_FREE` (network, image, replay, ... settings: another run). Both configs
+  are compared after `normalize` (e.g. `sac.resolve_conv_impl`: a run recorded with
+  `sac.conv_impl: auto` resumes as the tower auto takes)."""
+  original, cfg = normalize(original_config(run_dir) or base), normalize(cfg)
   changed = [k for k in changed_keys(original, cfg) if not resume_may_change(k)]
   if changed:
     value = lambda c, k: getattr(getattr(c, k.split(".")[0]), k.split(".")[1])

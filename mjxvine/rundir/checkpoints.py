@@ -287,26 +287,43 @@ def unflatten_params(arrays: dict) -> dict:
   return tree
 
 
-# Written by `mjxvine.evaluation.choice` in a run dir: the validation worlds' choice of the best policy.
+# Written by `mjxvine.evaluation.choice` in a run dir: the validation worlds' choice of the
+# best policy; of a run of several members (--seeds, sweeps), one choice per member.
 SELECTION_JSON = "selection.json"
 SELECTED_POLICY = "selected.npz"
+SELECTED_MEMBERS = "selected_members"  # RUN/selected_members/{selection<k>.json, member<k>.npz}
 
 
-def selected_policy(path: str | Path, which: str = "best") -> Path | None:
-  """RUN/selected.npz when `path` is a run dir (or its checkpoints dir) whose best policy
-  was chosen on validation worlds (`mjxvine.evaluation.choice`) and `which` is "best"; else None."""
+def selection_files(run_dir: str | Path, member: int | None = None) -> tuple[Path, Path]:
+  """(the selection record, the chosen policy file) of a run (`member` None) or of one
+  member of a run of several."""
+  run = Path(run_dir)
+  if member is None:
+    return run / SELECTION_JSON, run / SELECTED_POLICY
+  return (run / SELECTED_MEMBERS / f"selection{member}.json",
+          run / SELECTED_MEMBERS / f"member{member}.npz")
+
+
+def selected_policy(path: str | Path, which: str = "best",
+                    member: int | None = None) -> Path | None:
+  """The policy chosen on validation worlds (`mjxvine.evaluation.choice`) when `path` is a
+  run dir (or its checkpoints dir) whose choice was made and `which` is "best": RUN/
+  selected.npz, or of a run of several members RUN/selected_members/member<k>.npz (member
+  None: member 0, which checkpoints/best follows); else None."""
+  if which != "best":
+    return None
   path = Path(path).expanduser()
   run = path.parent if path.name == "checkpoints" else path
-  chosen = run / SELECTED_POLICY
-  return chosen if which == "best" and (run / SELECTION_JSON).is_file() \
-      and chosen.is_file() else None
+  options = ([selection_files(run)] if member in (None, 0) else []) + [
+      selection_files(run, member or 0)]
+  return next((npz for record, npz in options if record.is_file() and npz.is_file()), None)
 
 
 def restore_actor_params(path: str | Path, which: str = "best",
                          member: int | None = None) -> tuple[Any, Path]:
   """(actor params, item dir) of the checkpoint that `checkpoint_item(path, which)` picks;
-  of a run dir whose best policy was chosen on validation worlds, (its params,
-  RUN/selected.npz) for which="best" (`selected_policy`; member None or 0).
+  of a run dir whose best policy was chosen on validation worlds, (its params, the chosen
+  policy file) for which="best" (`selected_policy`, of `member`).
 
   The params are the actor's flax "params" dict of numpy arrays of one member: of a run
   that trained several (`--seeds`, sweeps; saved with a leading members axis), `member`,
@@ -318,8 +335,8 @@ def restore_actor_params(path: str | Path, which: str = "best",
   import jax
   import orbax.checkpoint as ocp
 
-  chosen = selected_policy(path, which)
-  if chosen is not None and member in (None, 0):
+  chosen = selected_policy(path, which, member)
+  if chosen is not None:
     from mjxvine.deploy import read_policy_file
     return unflatten_params(read_policy_file(chosen)[0]), chosen
   item = checkpoint_item(path, which)

@@ -23,6 +23,7 @@ from mjxvine.deploy.export import export_actor, meta_from_config
 from mjxvine.evaluation import choice, starts
 from mjxvine.rundir.checkpoints import Checkpoints
 from mjxvine.rundir.logs import Logger
+from mjxvine.sac import describe_conv_impl
 from mjxvine.training.distributed import local
 from mjxvine.training.programs import starts_params
 
@@ -56,7 +57,7 @@ def export_member(cfg: Config, actor, k: int | None, path: Path, chunk: int,
   """Writes member k of the (local) actor params, stacked over members, as a policy file;
   k = None: params of a single-member run (no member axis)."""
   meta = {**meta_from_config(cfg), "member": 0 if k is None else k, "chunk": chunk,
-          "env_steps": env_steps}
+          "env_steps": env_steps, "conv_tower": describe_conv_impl(cfg.sac.conv_impl)}
   export_actor(actor if k is None else jax.tree.map(lambda x: x[k], actor), path, meta)
 
 
@@ -90,7 +91,8 @@ class FreshStartEvaluation:
   every member drives `train.eval_starts` fresh starts per direction (the same starts
   each time). Keeps the state of all members as checkpoints/best when member 0's scores
   are the best so far, each member's actor as best_members/member<k>.npz when its own
-  are (`MemberBest`), and, for the choice on validation worlds, every evaluated policy."""
+  are (`MemberBest`), and, for the choice on validation worlds, every evaluated policy
+  (of each member: `choice.policy_file`)."""
 
   def __init__(self, cfg: Config, run_dir: Path, start_eval, ckpt: Checkpoints, seeds: int,
                total_chunks: int, primary: bool, say: Callable):
@@ -118,8 +120,10 @@ class FreshStartEvaluation:
     if self.member_best is not None:
       self.member_best.update(chunk_index, steps, rows, ts.learner.policy_params)
     if (self.cfg.train.keep_eval_policies or self.cfg.train.select_worlds) and self.primary:
-      export_member(self.cfg, local(ts.learner.policy_params), 0 if self.seeds > 1 else None,
-                    choice.policy_file(self.run_dir, steps), chunk_index, steps)
+      actor = local(ts.learner.policy_params)
+      for k in range(self.seeds) if self.seeds > 1 else (None,):  # each member's own
+        export_member(self.cfg, actor, k, choice.policy_file(self.run_dir, steps, k),
+                      chunk_index, steps)
     self.say(f"evaluated {2 * self.cfg.train.eval_starts} fresh starts in "
              f"{time.time() - t0:.0f} s: {eval_line(rows[0])}"
              + (" (new best)" if rows[0].get("best") else ""))

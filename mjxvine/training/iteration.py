@@ -278,8 +278,9 @@ _AFTER_TRAINING = ("keep_eval_policies", "select_worlds", "select_world_seed",
 
 
 def compile_key(cfg: Config) -> Config:
-  """`cfg` without the fields that do not shape the compiled program."""
-  return replace(cfg, train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
+  """`cfg` without the fields that do not shape the compiled program (and with the conv
+  tower `sac.conv_impl: auto` takes here: the same program either way)."""
+  return replace(sac_lib.resolve_conv_impl(cfg), train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
                              "save_replay": False, "sweep": "", "num_seeds": 1,
                              "max_minutes": 0.0, "eval_every_chunks": 0, "eval_starts": 1,
                              "video": False,

@@ -35,7 +35,8 @@ from mjxvine import sac as sac_lib
 from mjxvine import atomic
 from mjxvine.config import Config, load_config, to_yaml
 from mjxvine.rundir import (Interrupted, ResumeRefused, RunDirBusy, RunLock, StopSignals,
-                            original_config, refuse_changes, set_aside, write_run_record)
+                            original_config, record_fact, refuse_changes, set_aside,
+                            write_run_record)
 from mjxvine.rundir.checkpoints import Checkpoints
 from mjxvine.rundir.logs import Logger, clear_events, plot_learning_curve, truncate_metrics
 from mjxvine.training import distributed, hooks, report
@@ -114,6 +115,7 @@ class _Run:
   restored_steps: int
   vineyard: bool
   env: Any
+  stopped: str | None = None  # why the loop ended before the budget (train.max_minutes)
 
 
 def _set_up(cfg: Config, run_dir: Path, resume: bool, restart: bool, env,
@@ -122,11 +124,13 @@ def _set_up(cfg: Config, run_dir: Path, resume: bool, restart: bool, env,
   to the restored checkpoint. Returns the last row instead of a run already complete."""
   tell = _say(not primary)  # what a resume found is said even when quiet
   if resume:  # the same run or a clear refusal, before anything is built
-    refuse_changes(run_dir, cfg, _config_yaml(run_dir, cfg))
-  if primary:
-    atomic.write_text(run_dir / "config.yaml", to_yaml(cfg))
+    refuse_changes(run_dir, cfg, _config_yaml(run_dir, cfg), sac_lib.resolve_conv_impl)
+  tower = sac_lib.describe_conv_impl(cfg.sac.conv_impl)
+  if primary:  # the tower that runs, resolved: the same config trains the same way
+    atomic.write_text(run_dir / "config.yaml",
+                      f"# conv tower: {tower}\n{to_yaml(cfg)}")
     if not resume or original_config(run_dir) is None:
-      write_run_record(run_dir, cfg)
+      write_run_record(run_dir, cfg, conv_tower=tower)
   members = sweep_members(cfg)
   vineyard = env is None
   if vineyard:
@@ -231,10 +235,13 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
   through `chunk_hooks` in order. Returns (TrainState, chunks done, signal number or 0)."""
   ts, chunk_index = run.ts, run.chunk_index
   t_compile, t_start, signum = None, time.time(), 0
+  run.stopped = None
   while chunk_index < run.total_chunks:
     if cfg.train.max_minutes and time.time() - t_start > 60 * cfg.train.max_minutes:
-      say(f"train.max_minutes = {cfg.train.max_minutes} reached after chunk "
-          f"{chunk_index}: stopping")
+      run.stopped = (f"train.max_minutes = {cfg.train.max_minutes:g} reached after chunk "
+                     f"{chunk_index} ({int(np.max(ts.env_steps))} of "
+                     f"{cfg.train.total_env_steps} env steps)")
+      say(f"{run.stopped}: stopping (a safety net: the budget is train.total_env_steps)")
       break
     if t_compile is None:
       say("compiling the training iteration (the first chunk includes it)...")
@@ -262,6 +269,7 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
 def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quiet: bool,
            env, primary: bool, restart: bool) -> dict:
   say = _say(quiet)
+  cfg = sac_lib.resolve_conv_impl(cfg)  # `auto` as the tower it takes here
   phase = ["setup"]  # a signal stops at once but while training (nothing to keep)
   stops = StopSignals(stop_now=lambda: phase[0] != "training", say=say)
   with stops:
@@ -301,6 +309,10 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
         log.last_row.update(evaluation.at_end(ts, chunk_index))
     finally:
       logger.close()
+    if run.stopped:  # said in the last line and recorded with the run
+      log.last_row["stopped"] = run.stopped
+      if primary:
+        record_fact(run_dir, stopped=run.stopped)
     return _finish(cfg, run_dir, run, ts, evaluation, log.last_row, evaluate_at_end,
                    primary, say)
 
@@ -317,7 +329,9 @@ def _finish(cfg: Config, run_dir: Path, run: _Run, ts, evaluation, row: dict,
     row.update({f"best_{k}": v for k, v in best.items()})
   selected = None
   if run.vineyard and cfg.train.select_worlds and primary and best is not None:
-    selected = choice.select(cfg, run_dir, say)["selected"]
+    members = range(len(run.members)) if len(run.members) > 1 else (None,)
+    records = [choice.select(cfg, run_dir, say, member=k) for k in members]  # each its own
+    selected = records[0]["selected"]
     row["selected_env_steps"] = selected
   if run.vineyard and evaluate_at_end:
     report.closing_report(cfg, run_dir, run.sac, run.ckpt, ts, len(run.members), best, row,
