@@ -1,4 +1,5 @@
-"""`python -m mjxvine.latency`: single-decision latency of an exported policy on this CPU (numpy-only: runs on the robot).
+"""`python -m mjxvine.latency`: single-decision latency of an exported policy on this CPU
+(numpy-only: runs on the robot).
 
     python -m mjxvine.latency policy.npz [--calls 1000]                  # NumpyPolicy
     python -m mjxvine.latency policy.onnx --threads 1 [--no-spinning]   # onnxruntime

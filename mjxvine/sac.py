@@ -26,8 +26,8 @@ import optax
 from mjxvine import networks as nw
 from mjxvine.config import SACConfig
 # the replay buffer, part of the learner's API (`sac.init_buffer`, `sac.sample`, ...)
-from mjxvine.replay import (ReplayBuffer, Transition, buffer_nbytes, init_buffer, insert,  # noqa: F401
-                            num_sampleable, sample)
+from mjxvine.replay import (ReplayBuffer, Transition, buffer_nbytes,  # noqa: F401
+                            init_buffer, insert, num_sampleable, sample)
 
 Params = Any
 Obs = Any

@@ -161,8 +161,8 @@ def run(cfg: Config, run_dir: Path, args) -> int:
 
 def main(argv=None) -> int:
   """The CLI. Exit codes (`mjxvine.rundir`): 0 done, 2 a bad argument or config, a run
-  directory in use or a resume refused, 3 a non-finite loss, 4 a failed write (disk full, ...), 130 / 143
-  stopped by SIGINT / SIGTERM with a checkpoint written."""
+  directory in use or a resume refused, 3 a non-finite loss, 4 a failed write (disk full,
+  ...), 130 / 143 stopped by SIGINT / SIGTERM with a checkpoint written."""
   p = parser()
   args = p.parse_args(argv)
   enable_compile_cache()

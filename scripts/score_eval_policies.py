@@ -118,7 +118,8 @@ RULES = {
     "weaker of both, -MAE@1": lambda r: (min(_minmax(_trainer(r))[0],
                                              _minmax(r["pool_noise1"])[0]),
                                          -r["pool_noise1"]["mae_m"]),
-    # the choice's order (mjxvine.evaluation.choice.rank), over every scored policy (not its top candidates only)
+    # the choice's order (mjxvine.evaluation.choice.rank), over every scored policy (not
+    # its top candidates only)
     "validation successes, -MAE": choice.rank,
 }
 

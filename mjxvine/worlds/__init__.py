@@ -10,7 +10,8 @@ from mjxvine.worlds.robots import ROBOTS, RobotSpec, wheel_speeds
 from mjxvine.worlds.store import load_test_world, make_world
 
 __all__ = [
-    "Lane", "Vineyard", "WorldFileError", "generate_world", "load_world", "save_world", "world_extent",
+    "Lane", "Vineyard", "WorldFileError", "generate_world", "load_world", "save_world",
+    "world_extent",
     "build_model", "build_models", "build_spec", "plant_slots_for", "plant_geom_ids",
     "terrain_height", "random_poses", "batch_models", "take_world", "ROBOTS", "RobotSpec",
     "wheel_speeds", "load_test_world", "make_world",
