@@ -36,11 +36,10 @@ No test world is driven. The library is `mjxvine.evaluation.choice`.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
-from mjxvine.config import ConfigError, add_config_args, load_config, parse_sweep
+from mjxvine.config import ConfigError, add_config_args, load_config
 
 
 def main(argv=None, prog: str = "python -m mjxvine.choose") -> int:
@@ -56,15 +55,14 @@ def main(argv=None, prog: str = "python -m mjxvine.choose") -> int:
     if not (args.run_dir / "config.yaml").is_file():
       raise FileNotFoundError(f"{args.run_dir}: no config.yaml (not a run directory)")
     cfg = load_config(args.config or str(args.run_dir / "config.yaml"), args.overrides)
-    grid = parse_sweep(cfg.train.sweep)
-    count = cfg.train.num_seeds * math.prod(len(v) for v in grid.values())
+    from mjxvine.training.iteration import sweep_members  # (jax: after the cheap checks)
+    count = len(sweep_members(cfg))
     if args.member is not None and not 0 <= args.member < count:
       raise ValueError(f"--member {args.member}: the run trained {count} member(s), 0 to "
                        f"{count - 1}")
-    from mjxvine.evaluation import choice  # (jax and the env: after the cheap checks)
-    members = (None,) if count == 1 else (
-        (args.member,) if args.member is not None else range(count))
-    for k in members:
+    from mjxvine.evaluation import choice
+    chosen = (args.member,) if args.member is not None and count > 1 else None
+    for k in chosen or choice.member_ids(count):
       choice.select(cfg, args.run_dir, member=k)
   except ConfigError as e:
     print(f"config error: {e}", file=sys.stderr)

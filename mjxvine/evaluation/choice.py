@@ -56,6 +56,12 @@ def policy_file(run_dir: Path, env_steps: int, member: int | None = None) -> Pat
   return (folder if member is None else folder / f"member{member}") / f"env{env_steps}.npz"
 
 
+def member_ids(count: int) -> tuple | range:
+  """How the choice's files name the members of a run of `count`: (None,) for a run of
+  one (its files in the run directory itself), else 0 .. count - 1."""
+  return (None,) if count == 1 else range(count)
+
+
 def kept_policies(run_dir: Path, member: int | None = None) -> dict[int, Path]:
   """{env steps: policy file} of the run's (or one member's) kept policies."""
   folder = policy_file(run_dir, 0, member).parent

@@ -121,7 +121,7 @@ class FreshStartEvaluation:
       self.member_best.update(chunk_index, steps, rows, ts.learner.policy_params)
     if (self.cfg.train.keep_eval_policies or self.cfg.train.select_worlds) and self.primary:
       actor = local(ts.learner.policy_params)
-      for k in range(self.seeds) if self.seeds > 1 else (None,):  # each member's own
+      for k in choice.member_ids(self.seeds):  # each member's own
         export_member(self.cfg, actor, k, choice.policy_file(self.run_dir, steps, k),
                       chunk_index, steps)
     self.say(f"evaluated {2 * self.cfg.train.eval_starts} fresh starts in "

@@ -329,8 +329,8 @@ def _finish(cfg: Config, run_dir: Path, run: _Run, ts, evaluation, row: dict,
     row.update({f"best_{k}": v for k, v in best.items()})
   selected = None
   if run.vineyard and cfg.train.select_worlds and primary and best is not None:
-    members = range(len(run.members)) if len(run.members) > 1 else (None,)
-    records = [choice.select(cfg, run_dir, say, member=k) for k in members]  # each its own
+    records = [choice.select(cfg, run_dir, say, member=k)  # each member its own
+               for k in choice.member_ids(len(run.members))]
     selected = records[0]["selected"]
     row["selected_env_steps"] = selected
   if run.vineyard and evaluate_at_end:
