@@ -15,6 +15,9 @@ os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       str(Path(__file__).resolve().parent.parent / ".pytest_cache" / "xla"))
 
+import ast  # noqa: E402
+import gc  # noqa: E402
+
 import pytest  # noqa: E402
 
 # The start of a subprocess script that must run with numpy alone (the robot's side):
@@ -37,3 +40,17 @@ from mjxvine.config import load_config  # noqa: E402
 def cfg():
   """The default (paper) config."""
   return load_config()
+
+
+def parse_source(text: str, **kw) -> ast.Module:
+  """`ast.parse` with the garbage collector paused: CPython 3.11 raises "AST constructor
+  recursion depth mismatch" when a finalizer (asyncio's, orbax's, left by earlier tests)
+  runs Python code while the tree's objects are built."""
+  enabled = gc.isenabled()
+  gc.disable()
+  try:
+    return ast.parse(text, **kw)
+  finally:
+    if enabled:
+      gc.enable()
+

@@ -16,7 +16,7 @@ from mjxvine import deploy, export
 from mjxvine.deploy import export as export_lib
 from mjxvine import networks as nw
 from mjxvine.config import Config, config_hash
-from conftest import NUMPY_ONLY_PRELUDE
+from conftest import NUMPY_ONLY_PRELUDE, parse_source
 
 H = W = 112
 
@@ -264,7 +264,7 @@ def test_deploy_is_one_python_3_8_file_that_needs_only_numpy(exported, tmp_path)
   from mjxvine.deploy import numpy_policy
 
   src = Path(numpy_policy.__file__)  # the file itself, not the package's __init__
-  tree = ast.parse(src.read_text(), feature_version=(3, 8))
+  tree = parse_source(src.read_text(), feature_version=(3, 8))
   imported = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
               for a in n.names}
   imported |= {n.module.split(".")[0] for n in ast.walk(tree)

@@ -40,6 +40,7 @@ from pathlib import Path
 from unittest import mock
 
 import pytest
+from conftest import parse_source
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC_FILES = [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").rglob("*.md"))]
@@ -242,7 +243,7 @@ def policy_dir(tmp_path_factory):
 
 
 def _imports_only(code: str) -> str:
-  tree = ast.parse(code)
+  tree = parse_source(code)
   return ast.unparse([n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))])
 
 

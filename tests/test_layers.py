@@ -7,6 +7,8 @@ import ast
 import re
 from pathlib import Path
 
+from conftest import parse_source
+
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "mjxvine"
 REFERENCE = ROOT / "docs" / "reference.md"
@@ -32,7 +34,7 @@ def layer_map() -> dict[str, int]:
 
 def imports(path: Path, name: str, known: set[str]) -> list[tuple[str, list[str]]]:
   """(imported mjxvine module, names taken from it) for every import in the file."""
-  tree = ast.parse(path.read_text())
+  tree = parse_source(path.read_text())
   package = name if path.name == "__init__.py" else name.rpartition(".")[0]
   out = []
   for node in ast.walk(tree):

@@ -18,7 +18,7 @@ import pytest
 
 from mjxvine.deploy import numpy_policy as npp
 from mjxvine.deploy.numpy_policy import NumpyPolicy, PolicyError, PolicyInputError
-from conftest import NUMPY_ONLY_PRELUDE
+from conftest import NUMPY_ONLY_PRELUDE, parse_source
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "jackal.npz"
@@ -337,11 +337,10 @@ _ALONE = NUMPY_ONLY_PRELUDE + textwrap.dedent("""
 def test_the_policy_file_alone_checks_inputs_with_numpy_only(tmp_path):
   """numpy_policy.py copied alone (as mjxvine_deploy.py) refuses bad input and reads ROS
   images with numpy and the standard library only, and parses as Python 3.8."""
-  import ast
   import shutil
 
   src = Path(npp.__file__)
-  ast.parse(src.read_text(), feature_version=(3, 8))
+  parse_source(src.read_text(), feature_version=(3, 8))
   shutil.copy(src, tmp_path / "mjxvine_deploy.py")
   env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONPATH=str(tmp_path))
   out = subprocess.run([sys.executable, "-c", _ALONE, str(MODEL)], capture_output=True,
