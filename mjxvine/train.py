@@ -30,9 +30,10 @@ import jax
 from mjxvine.atomic import OutputError, check_output
 from mjxvine.config import (DEFAULT_CONFIG_NAME, PACKAGED_CONFIGS, Config, add_config_args,
                             config_from_args, enable_compile_cache, resolve_config_path)
+from mjxvine.formatting import first_line
 from mjxvine.rundir import (EXIT_NON_FINITE, EXIT_USAGE, EXIT_WRITE, Interrupted,
                             ResumeRefused, RunDirBusy, WriteError, busy_message, exit_code,
-                            lock_holder, refuse_changes, write_failure)
+                            lock_holder, write_failure)
 from mjxvine.training.iteration import NonFiniteError
 from mjxvine.training.loop import train
 
@@ -80,20 +81,17 @@ def parser() -> argparse.ArgumentParser:
 
 
 def resumed_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
-  """The config of the run in --resume: its config.yaml, with the --set overrides of the
-  keys that may change (`rundir.RESUME_FREE`)."""
+  """The config of the run in --resume: its config.yaml with the --set overrides (only
+  the keys in `rundir.RESUME_FREE` may change: `train` refuses others)."""
   run_dir = Path(args.resume)
   resolved = run_dir / "config.yaml"
   if not run_dir.is_dir():
     p.error(f"--resume {run_dir}: no such run directory")
   if not resolved.is_file():
     p.error(f"--resume {run_dir}: no config.yaml there (not a run directory)")
+  # the same run or a refusal (exit 2): `train` compares it with the config it started
+  # with (run.json) before anything is built
   cfg = config_from_args(argparse.Namespace(config=str(resolved), overrides=args.overrides))
-  try:  # the same run: compared with the config it started with (run.json)
-    refuse_changes(run_dir, cfg, config_from_args(
-        argparse.Namespace(config=str(resolved), overrides=[])))
-  except ResumeRefused as e:
-    p.exit(EXIT_USAGE, f"error: {e}\n")
   if args.seeds or args.sweep:
     p.error("--resume: the seeds and sweep come from the run's config.yaml")
   return cfg, run_dir
@@ -199,8 +197,7 @@ def _initialize_distributed(p: argparse.ArgumentParser, args) -> None:
     jax.distributed.initialize(coordinator_address=coordinator, num_processes=count,
                                process_id=pid)
   except (ValueError, RuntimeError) as e:
-    first = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
-    p.error(f"--distributed: {first} (give --coordinator, --num-processes and "
+    p.error(f"--distributed: {first_line(e)} (give --coordinator, --num-processes and "
             "--process-id, or run under SLURM / Open MPI / Kubernetes)")
 
 

@@ -135,3 +135,13 @@ def test_evaluate_refuses_bad_input_before_the_first_rollout(tmp_path, capsys, a
   assert evaluate_main(argv) == 2
   _one_line(capsys, *(w.format(**names) for w in words))
   assert not (tmp_path / "e" / "results.json").exists()
+
+
+def test_an_error_is_said_in_its_first_line_whole():
+  from mjxvine.formatting import first_line
+  assert first_line(ValueError("")) == "ValueError"
+  assert first_line(RuntimeError("\n  shapes differ: (64,) vs (48,)\n  at dense0")) == (
+      "shapes differ: (64,) vs (48,)")
+  long = first_line(ValueError("word " * 200))
+  assert long.endswith(" ...") and len(long) <= 404 and "wor ..." not in long
+

@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 
 from mjxvine.deploy.numpy_policy import NumpyPolicy, PolicyFormatError
+from mjxvine.formatting import first_line
 
 
 def measure(fn: Callable[[], object], calls: int = 1000, warmup: int = 50) -> dict:
@@ -67,8 +68,7 @@ def onnx_latency(path: str | Path, threads: int = 1, calls: int = 1000, seed: in
   try:
     sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
   except Exception as e:  # noqa: BLE001 - onnxruntime's load errors have no public base
-    raise PolicyFormatError(f"{path}: not a valid ONNX model ({str(e).splitlines()[0][:160]})"
-                            ) from None
+    raise PolicyFormatError(f"{path}: not a valid ONNX model ({first_line(e)})") from None
   _, h, w, _ = sess.get_inputs()[0].shape
   meta = json.loads(sess.get_modelmeta().custom_metadata_map.get("mjxvine_meta", "{}"))
   depth, state = _inputs(h, w, float(meta.get("max_depth_m", 5.0)), seed)

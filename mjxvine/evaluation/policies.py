@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jp
 
 from mjxvine.deploy import NumpyPolicy, PolicyError, PolicyFormatError, read_policy_file
+from mjxvine.formatting import first_line
 from mjxvine.networks import SACNetworks, act_deterministic, make_networks_from_config
 from mjxvine.rundir.checkpoints import checkpoint_item, restore_actor_params, unflatten_params
 
@@ -139,5 +140,5 @@ def load_actor_policy(path: Path, env, which: str = "best", member: int | None =
                       f"{env.cfg.camera.height}x{env.cfg.camera.width}, sac.hidden "
                       f"{env.cfg.sac.hidden}, sac.conv_features {env.cfg.sac.conv_features} "
                       f"(a run without config.yaml needs --config; {type(e).__name__}: "
-                      f"{str(e).splitlines()[0][:120]})") from None
+                      f"{first_line(e)})") from None
   return actor_policy(nets, params, mirror=averaging_mirror(env.cfg))

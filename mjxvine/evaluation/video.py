@@ -31,6 +31,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from mjxvine import atomic
+from mjxvine.formatting import first_line
 
 GL_BACKENDS = ("egl", "osmesa")  # headless, in order of preference
 INSTALL_GL = ("no OpenGL for headless rendering: install EGL (Debian/Ubuntu: apt-get install "
@@ -222,8 +223,7 @@ def render_frames(model, track: Track, width: int = 480, height: int = 360,
   try:
     renderer = mujoco.Renderer(model, height, width)
   except Exception as e:  # noqa: BLE001 - GL libraries fail in many ways
-    raise RenderError(f"{INSTALL_GL} ({type(e).__name__}: {str(e).splitlines()[0][:120]})"
-                      ) from None
+    raise RenderError(f"{INSTALL_GL} ({type(e).__name__}: {first_line(e)})") from None
   try:
     for t in range(len(track)):
       data.qpos[:] = track.qpos[t]

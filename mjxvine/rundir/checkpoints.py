@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from mjxvine import atomic
+from mjxvine.formatting import first_line
 
 WHICH = ("best", "last")  # which checkpoint of a run: see `checkpoint_item`
 
@@ -115,7 +116,7 @@ class Checkpoints:
         what = "best checkpoint" if best else "checkpoint"
         moved = self.move_aside(manager, step) if self.primary else None
         print(f"{what} {step} is corrupt or partial ({type(e).__name__}: "
-              f"{_first_line(e)})" + (f"; moved to {moved}" if moved else "")
+              f"{first_line(e)})" + (f"; moved to {moved}" if moved else "")
               + ("; trying the previous one" if not best else ""), file=sys.stderr)
         continue
       return step, self._unpayload(payload, template)
@@ -138,12 +139,6 @@ class Checkpoints:
     except OSError:
       return None
     return target
-
-
-def _first_line(error: BaseException) -> str:
-  """An error's first line, whole (orbax's messages are long; their first line says it)."""
-  lines = [l for l in str(error).splitlines() if l.strip()]
-  return lines[0].strip() if lines else type(error).__name__
 
 
 def remove_partial_steps(manager_dir: Path) -> list[Path]:
@@ -348,7 +343,7 @@ def restore_actor_params(path: str | Path, which: str = "best",
     tree = ckpt.restore(item, args=ocp.args.PyTreeRestore(restore_args=restore_args))
   except Exception as e:  # noqa: BLE001 - orbax fails in many ways on damaged files
     raise ValueError(f"{item}: not a readable orbax checkpoint ({type(e).__name__}: "
-                     f"{_first_line(e)})") from None
+                     f"{first_line(e)})") from None
   # the evaluated actor (`LearnerState.policy_params`); checkpoints from before it had
   # only the learning actor
   actor = _find_key(tree, "policy_params")
