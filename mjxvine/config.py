@@ -20,6 +20,9 @@ from typing import Any, Sequence
 
 import yaml
 
+from mjxvine import robot_files
+from mjxvine.robot_files import ROBOTS, RobotSpec
+
 
 class ConfigError(ValueError):
   """A config file or override is invalid; the message names the key."""
@@ -46,61 +49,53 @@ class WorldConfig:
                                 "wide gap each (at most train_rows)")
   train_wide_gap_plants: tuple[int, int] = _f((2, 3), 1, 5, doc="plants missing in a wide "
                                               "gap of a varied train world (range; test worlds: 2-3)")
-  train_length_m: float = _f(20.0, 4.0, 60.0)
-  test_length_m: float = _f(24.0, 8.0, 60.0)
+  train_length_m: float = _f(20.0, 4.0, 300.0, doc="row length of train worlds")
+  test_length_m: float = _f(24.0, 8.0, 300.0, doc="row length of test worlds (the time "
+                            "limit of an episode follows it: max_steps per 24 m)")
   curve_amplitude_m: float = _f(0.7, 0.0, 2.0, doc="lateral wander of curved test rows")
   trunk_radius_m: float = _f(0.04, 0.01, 0.2)
   trunk_height_m: tuple[float, float] = _f((0.6, 0.8), 0.1, 2.0)
   canopy_width_m: tuple[float, float] = _f((0.3, 0.5), 0.05, 2.0)
   canopy_top_m: tuple[float, float] = _f((1.6, 1.9), 0.5, 4.0)
   terrain_amplitude_m: float = _f(0.05, 0.0, 0.5, doc="terrain bumps are +- this")
+  slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient along the rows (+x), %")
+  cross_slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient across the rows, %")
   terrain_bump_m: float = _f(1.0, 0.1, 10.0, doc="grid of the random bumps")
   terrain_cell_m: float = _f(0.25, 0.05, 2.0, doc="heightfield resolution")
   terrain_margin_m: float = _f(4.0, 0.5, 20.0, doc="terrain beyond the outer plants")
   plant_slots: int = _f(0, 0, 4096, doc="plant slots per world (0: as many as the batch needs)")
   train_seed: int = _f(0, 0, 2**31 - 1, doc="seed of the first train world of the pool")
   pool_size: int = _f(8, 1, 4096, doc="train worlds in the pool")
+  train_files: str = _f("", doc="vineyard files (.geojson, .csv, comma-separated) whose "
+                        "blocks join the pool of generated train worlds")
   test_seed: int = _f(0, 0, 2**31 - 1)
 
 
-@dataclasses.dataclass(frozen=True)
-class RobotSpec:
-  """A robot's fixed geometry and masses (docs/design.md, Robots): metres, kg.
-
-  The table lives here, not in `mjxvine.worlds`, because config validation needs the
-  widths and `mjxvine.worlds` imports this module; `mjxvine.worlds.robots` re-exports it.
-  """
-  name: str
-  length: float        # footprint L (x)
-  width: float         # footprint W (y)
-  height: float        # H, ground to top
-  chassis_mass: float
-  wheel_mass: float
-  wheel_radius: float
-  track: float         # distance between left and right wheel centres
-  wheelbase: float     # distance between front and rear axles
-  camera_ahead: float  # camera optical centre ahead of the base centre
-  camera_height: float  # camera optical centre above the ground
-  track_slip: float    # skid-steer expanded-track factor chi: w = (v_r - v_l) / (chi * track)
-
-  @property
-  def mass(self) -> float:
-    return self.chassis_mass + 4 * self.wheel_mass
+def robot_spec(name_or_path: str) -> RobotSpec:
+  """The robot of `robot.name`: a built-in name (`ROBOTS`, from the package's robot files)
+  or a robot file FILE.yaml (docs/your-robot.md), read once per resolved path. Lives here
+  because validation needs it; `mjxvine.worlds.robots` re-exports it. ConfigError, one
+  line naming the file and its fault, if it is bad (`mjxvine.robot_files`)."""
+  try:
+    return robot_files.robot_spec(name_or_path)
+  except robot_files.RobotFileError as e:
+    raise ConfigError(str(e)) from None
 
 
-ROBOTS = {
-    "jackal": RobotSpec("jackal", 0.508, 0.430, 0.250, 16.5, 0.477, 0.098, 0.376, 0.262,
-                        0.21, 0.26, 1.8),
-    "husky": RobotSpec("husky", 0.990, 0.670, 0.390, 46.0, 2.64, 0.1651, 0.571, 0.512,
-                       0.445, 0.40, 3.5),
-}
-ROBOT_NAMES = tuple(ROBOTS)  # ("jackal", "husky"): config choices, evaluation sweeps
+ROBOT_NAMES = tuple(ROBOTS)  # the built-in robots (evaluation sweeps name theirs)
 
 
 @dataclasses.dataclass(frozen=True)
 class RobotConfig:
-  """Which robot (docs/design.md, Robots) and its drive."""
-  name: str = _f("jackal", choices=ROBOT_NAMES)
+  """Which robot (docs/design.md, Robots; docs/your-robot.md) and its drive.
+
+  A robot file may give camera.fovx_deg, fovy_deg, width, height and env.v_max, w_max
+  (`robot_files.CONFIG_KEYS`). The rule, by rising precedence: the defaults, `base` and the
+  config file, the robot file, `--set`. A trained policy's image size and action box cannot
+  change (`rundir.settings.POLICY_KEYS`): a robot file asking for others is one ConfigError
+  line, and `--set KEY=VALUE` of the policy's value keeps it."""
+  name: str = _f("jackal", doc="a built-in robot (jackal, husky) or a robot file FILE.yaml "
+                 "(relative to the working directory)")
   wheel_kv: float = _f(1.0, 0.001, 100.0, doc="wheel velocity-servo gain per kg of robot, N m s / rad / kg")
   wheel_armature: float = _f(0.005, 0.0, 1.0, doc="wheel motor armature per kg of robot, kg m^2 / kg")
   wheel_friction: float = _f(0.8, 0.05, 5.0)
@@ -126,7 +121,8 @@ class EnvConfig:
   num_envs: int = _f(1, 1, 1 << 20)
   control_dt: float = _f(0.1, 0.01, 1.0, doc="seconds per action")
   physics_dt: float = _f(0.02, 0.001, 0.1, doc="MJX timestep; control_dt / physics_dt sub-steps")
-  max_steps: int = _f(700, 1, 100000, doc="episode limit T (a truncation)")
+  max_steps: int = _f(700, 1, 100000, doc="episode limit T (a truncation) on rows up "
+                      "to 24 m, in proportion on longer ones (`lanes.lane_steps`)")
   v_min: float = _f(0.0, 0.0, 5.0, doc="lowest commanded speed, m/s (0: the paper's box; "
                     "> 0: the robot cannot stop in the row, so time-outs cannot be "
                     "waited out)")
@@ -307,7 +303,8 @@ class TrainConfig:
 class EvalConfig:
   runs: int = _f(5, 1, 1000, doc="runs per lane and direction")
   max_steps: int = _f(700, 1, 100000, doc="episode limit T of the test-world protocol (the "
-                      "paper's 700), whatever env.max_steps training used")
+                      "paper's 700) on rows up to 24 m, in proportion on longer ones; "
+                      "whatever env.max_steps training used")
   noise_factor: float = _f(1.0, 0.0, 100.0)
   runs_after_train: int = _f(1, 0, 1000)
 
@@ -387,13 +384,14 @@ def _build(cls, data: dict, prefix: str):
 
 
 def _check_cross_fields(cfg: Config) -> None:
-  width = ROBOTS[cfg.robot.name].width
+  robot = robot_spec(cfg.robot.name)
+  width = robot.width
   lo = cfg.world.inter_row_m[0]
   if lo - cfg.world.canopy_width_m[1] <= width:
     raise ConfigError(
         f"world.inter_row_m = {list(cfg.world.inter_row_m)}: the lane (inter-row distance "
         f"minus canopy width {cfg.world.canopy_width_m[1]}) must be wider than the "
-        f"{cfg.robot.name} ({width} m); must be > {width + cfg.world.canopy_width_m[1]:.3f}")
+        f"{robot.name} ({width} m); must be > {width + cfg.world.canopy_width_m[1]:.3f}")
   if cfg.world.trunk_height_m[1] >= cfg.world.canopy_top_m[0]:
     raise ConfigError(f"world.trunk_height_m = {list(cfg.world.trunk_height_m)}: "
                       f"must stay below world.canopy_top_m {list(cfg.world.canopy_top_m)}")
@@ -490,15 +488,7 @@ def read_yaml(path: str | Path) -> dict:
   if not path.is_file():
     raise ConfigError(f"config file not found: {path} (shipped configs: "
                       f"{', '.join(packaged_configs())})")
-  try:
-    data = yaml.safe_load(path.read_text(encoding="utf-8"))
-  except UnicodeDecodeError as e:
-    raise ConfigError(f"{path}: not a text file (byte {e.start} is not UTF-8); a config "
-                      "is YAML text") from None
-  except OSError as e:
-    raise ConfigError(f"{path}: cannot be read ({e.strerror})") from None
-  except yaml.YAMLError as e:
-    raise ConfigError(f"{path}: not valid YAML ({' '.join(str(e).split())})") from None
+  data = robot_files.load_yaml(path, str(path), ConfigError, "config")
   if data is None:
     # An empty file is more likely a mistake than a wish for the defaults (a 112x112
     # run with a multi-GB replay): "{}" says the latter.
@@ -518,17 +508,39 @@ def _merged(base: dict, top: dict) -> dict:
   return out
 
 
+def _lay_robot_file(data: dict, sets: list[tuple[str, str]]) -> None:
+  """Lays the camera and velocity values of the robot file that `robot.name` (in `sets`,
+  else in `data`) names over `data`, but under the keys that `sets` gives (RobotConfig)."""
+  names = [v for k, v in sets if k == "robot.name"]
+  section = data.get("robot")
+  name = names[-1] if names else (section.get("name", RobotConfig.name)
+                                  if isinstance(section, dict) else RobotConfig.name)
+  try:
+    robot = robot_spec(str(name))
+  except ConfigError as e:
+    raise ConfigError(f"robot.name: {e}") from None
+  given = {k for k, _ in sets}
+  for key, value in robot_files.config_values(robot).items():
+    if key not in given:
+      _set_nested(data, key, value)
+
+
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = (),
                 base: dict | None = None) -> Config:
   """Loads a config: defaults <- `base` (a mapping, e.g. a run's own config.yaml) <- YAML
-  file at `path` <- `overrides` ("section.key=value")."""
+  file at `path` <- the robot file's camera and velocity values (RobotConfig) <-
+  `overrides` ("section.key=value")."""
   data: dict = _merged(copy.deepcopy(base or {}),
                        read_yaml(path) if path is not None else {})
+  sets = []
   for item in overrides:
     if "=" not in item:
       raise ConfigError(f"--set {item!r}: expected section.key=value")
     key, value = item.split("=", 1)
-    _set_nested(data, key.strip(), value.strip())
+    sets.append((key.strip(), value.strip()))
+  _lay_robot_file(data, sets)
+  for key, value in sets:
+    _set_nested(data, key, value)
   cfg = _build(Config, data, "")
   _check_cross_fields(cfg)
   return cfg
@@ -610,7 +622,7 @@ __all__ = [
     "Config", "ConfigError", "WorldConfig", "RobotConfig", "CameraConfig", "EnvConfig",
     "SACConfig", "TrainConfig", "EvalConfig", "load_config", "to_dict", "to_yaml",
     "config_hash", "add_config_args", "config_from_args", "replace", "RobotSpec", "ROBOTS",
-    "read_yaml",
+    "read_yaml", "robot_spec",
     "ROBOT_NAMES", "SWEEPABLE", "parse_sweep", "enable_compile_cache", "action_box",
     "changed_keys",
     "depth_input_scale",

@@ -78,6 +78,9 @@ from mujoco import mjx
 from mjxvine.config import CameraConfig
 
 _MINVAL = float(mujoco.mjMINVAL)
+# Heightfields spanning more than this (m of height range, hfield size z: slopes) get three
+# refinement iterations by default; the paper's bumpy ground (0.1 m) keeps one.
+SLOPED_TERRAIN_M = 0.5
 _BIG = 1e6  # stands for "no limit" in per-primitive parameters (kept finite for arithmetic)
 _KIND_QUADRIC, _KIND_CYLINDER = 0, 1
 
@@ -119,7 +122,8 @@ class DepthCamera:
   def create(model: mujoco.MjModel, cfg: CameraConfig | None = None, *,
              camera: str = "depth", max_prims: int | None = None,
              tile: tuple[int, int] | None = None, tile_slots: int = 8,
-             terrain_samples: int | None = None, terrain_refine: int = 1) -> "DepthCamera":
+             terrain_samples: int | None = None,
+             terrain_refine: int | None = None) -> "DepthCamera":
     """Collects what the camera named `camera` of the host `model` can see.
 
     max_prims: primitives kept after view culling; default min(P, 64). A default vineyard
@@ -128,7 +132,9 @@ class DepthCamera:
     tile, tile_slots: pixels per tile (default about 1/7 of the height x 1/14 of the
       width: (16, 8) at 112 x 112) and primitives tested per tile.
     terrain_samples: z-depth samples per column, default one per 0.6 heightfield cells
-      (34 for 5 m and 0.25 m cells); terrain_refine: exact refinement iterations.
+      (34 for 5 m and 0.25 m cells); terrain_refine: exact refinement iterations, default
+      1, or 3 where the heightfield spans over `SLOPED_TERRAIN_M` (slopes: one iteration
+      leaves 1-3 % of the pixels over 1 cm off on a 10 % slope, three none).
     """
     cfg = cfg or CameraConfig()
     cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
@@ -172,6 +178,8 @@ class DepthCamera:
     if terrain_samples is None:
       cell = min(2 * hsize[0] / (ncol - 1), 2 * hsize[1] / (nrow - 1))
       terrain_samples = max(16, int(math.ceil(cfg.max_depth_m / (0.6 * cell))))
+    if terrain_refine is None:
+      terrain_refine = 3 if hsize[2] > SLOPED_TERRAIN_M else 1
     if tile is None:
       tile = (max(1, round(cfg.height / 7)), max(1, round(cfg.width / 14)))
     g, kind, sphere, offset = (zip(*prims) if prims else ((),) * 4)

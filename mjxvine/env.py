@@ -41,8 +41,12 @@ from mjxvine.deploy import MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN
 # this module does not use itself.
 from mjxvine.episodes import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
                               REWARD_PREFIX, RUNNING, SUCCESS, TIMEOUT)
+# The lane geometry is read from here too (starts, tests): noqa for what this module
+# does not use itself.
+from mjxvine.lanes import LaneTable, lane_frame, point_ahead  # noqa: F401
 from mjxvine.wrappers import AutoResetBatch
-from mjxvine.worlds import (ROBOTS, Vineyard, batch_models, build_models, generate_world,
+from mjxvine.worlds.layout import CENTERLINE_STEP_M
+from mjxvine.worlds import (Vineyard, robot_spec, batch_models, build_models, pool_worlds,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
 REWARD_TERMS = ("heading", "progress", "success", "collision", "reverse")
@@ -58,67 +62,27 @@ def _wrap(angle: jax.Array) -> jax.Array:
   return (angle + jp.pi) % (2 * jp.pi) - jp.pi
 
 
-class LaneTable:
-  """Lanes of every pool world, padded to a common count: centerlines (Wd, L, K, 2) m,
-  lane counts (Wd,), inter-row distances (Wd,) m."""
-
-  def __init__(self, worlds: Sequence[Vineyard]):
-    num = max(len(w.lanes) for w in worlds)
-    k = {len(l.centerline) for w in worlds for l in w.lanes}
-    if len(k) != 1:
-      raise ValueError("pool worlds must share the row length (centerline samples)")
-    lines = np.zeros((len(worlds), num, k.pop(), 2), np.float32)
-    for i, w in enumerate(worlds):
-      for j, lane in enumerate(w.lanes):
-        lines[i, j] = lane.centerline
-      lines[i, len(w.lanes):] = lines[i, len(w.lanes) - 1]
-    self.centerline = jp.asarray(lines)
-    self.count = jp.asarray([len(w.lanes) for w in worlds], jp.int32)
-    self.inter_row = jp.asarray([w.inter_row_m for w in worlds], jp.float32)
-
-
-def lane_frame(line: jax.Array, p: jax.Array, direction: jax.Array):
-  """Nearest centerline sample to p (2,) and the lane frame there for a travel direction.
-
-  Returns (index, tangent (2,) in the travel direction, lateral offset m (left +),
-  along-lane coordinate of p m).
-  """
-  i = jp.argmin(jp.sum((line - p) ** 2, -1))
-  k = line.shape[0]
-  a, b = line[jp.clip(i - 1, 0, k - 2)], line[jp.clip(i + 1, 1, k - 1)]
-  t = (b - a) / (jp.linalg.norm(b - a) + 1e-9) * direction
-  rel = p - line[i]
-  lateral = t[0] * rel[1] - t[1] * rel[0]
-  return i, t, lateral, rel @ t
-
-
-def point_ahead(line: jax.Array, index: jax.Array, direction: jax.Array,
-                samples: int) -> jax.Array:
-  """The centerline sample `samples` samples after `index` in the travel direction (2,),
-  clipped to the lane's ends (past the EoR it stays at the last sample)."""
-  ahead = jp.where(direction > 0, samples, -samples)
-  return line[jp.clip(index + ahead, 0, line.shape[0] - 1)]
-
-
 class VineyardEnv(Env):
   """Batched vineyard-navigation environment over a pool of worlds (brax `Env`)."""
 
   def __init__(self, cfg: Config, worlds: Sequence[Vineyard] | None = None, *,
                noise_factor: float | None = None):
-    """`worlds` defaults to the config's pool of train worlds (seeds train_seed ...)."""
+    """`worlds` defaults to the config's pool of train worlds (`worlds.pool_worlds`:
+    generated ones, seeds train_seed ..., and the blocks of `world.train_files`)."""
     if worlds is None:
-      worlds = [generate_world("train", cfg.world.train_seed + i, cfg.world)
-                for i in range(cfg.world.pool_size)]
+      worlds = pool_worlds(cfg)
     self.cfg = cfg
     self.worlds = list(worlds)
-    self.robot = ROBOTS[cfg.robot.name]
+    self.robot = robot_spec(cfg.robot.name)
     self.noise_factor = cfg.camera.noise_factor if noise_factor is None else noise_factor
     models = build_models(self.worlds, cfg)
     self.mj_model = models[0]
     self.model, self.model_axes = batch_models(models)
     self.camera = depth_cam.DepthCamera.create(self.mj_model, cfg.camera)
-    self.lanes = LaneTable(self.worlds)
-    self.sample_m = self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
+    self.lanes = LaneTable(self.worlds, cfg.env.max_steps)
+    # metres of x between centerline samples (at most CENTERLINE_STEP_M in file worlds)
+    self.sample_m = (self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
+                     if self.lanes.uniform else CENTERLINE_STEP_M)
     # heading_target=lane: centerline samples between the robot's nearest one and its target
     self._lookahead_samples = int(np.round(cfg.env.heading_lookahead_m / self.sample_m))
     self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds, cfg))
@@ -217,7 +181,7 @@ class VineyardEnv(Env):
       direction = jp.where(jax.random.bernoulli(kd, p_forward), jp.float32(1), jp.float32(-1))
     else:
       direction = jp.float32(direction)
-    length = self.worlds[0].length_m
+    length = self.lanes.lane(world, lane)[2]
     lo, hi = env.start_along if along is None else along
     along = jax.random.uniform(ka, (), minval=lo * length, maxval=hi * length)
     lateral = jax.random.uniform(kx, (), minval=-1.0, maxval=1.0) * env.start_lateral_jitter_m
@@ -226,16 +190,15 @@ class VineyardEnv(Env):
     return self._pose(world, lane, direction, along, lateral, yaw)
 
   def _pose(self, world, lane, direction, along, lateral, yaw) -> dict:
-    line = self.lanes.centerline[world, lane]
-    k = line.shape[0]
-    step = self.worlds[0].length_m / (k - 1)
+    line, k, length, _ = self.lanes.lane(world, lane)
+    step = length / (k - 1)
     idx = jp.clip(jp.round(along / step).astype(jp.int32), 0, k - 1)
     idx = jp.where(direction > 0, idx, k - 1 - idx)
-    i, t, _, _ = lane_frame(line, line[idx], direction)
+    i, t, _, _ = lane_frame(line, line[idx], direction, k)
     normal = jp.array([-t[1], t[0]])
     xy = line[idx] + lateral * normal
     heading = jp.arctan2(t[1], t[0]) + yaw
-    eor = jp.where(direction > 0, line[-1], line[0])
+    eor = jp.where(direction > 0, line[k - 1], line[0])
     return dict(world=world, lane=lane, direction=direction, xy=xy, yaw=_wrap(heading), eor=eor)
 
   def physics(self, m: mjx.Model, d: mjx.Data, action: jax.Array) -> mjx.Data:
@@ -342,18 +305,18 @@ class VineyardEnv(Env):
     d = jax.tree.map(lambda new, old: jp.where(exploded, old, new), d, state.pipeline_state)
 
     xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
-    line = self.lanes.centerline[pose["world"], pose["lane"]]
-    nearest, tangent, lateral, _ = lane_frame(line, xy, pose["direction"])
+    line, k, _, width = self.lanes.lane(pose["world"], pose["lane"])
+    nearest, tangent, lateral, _ = lane_frame(line, xy, pose["direction"], k)
     dist = jp.linalg.norm(xy - pose["eor"])
     target = pose["eor"]
     if env.heading_target == "lane":  # a pure-pursuit point: phi = 0 only on the centreline
-      target = point_ahead(line, nearest, pose["direction"], self._lookahead_samples)
+      target = point_ahead(line, nearest, pose["direction"], self._lookahead_samples, k)
     to_target = target - xy
     phi = _wrap(jp.arctan2(to_target[1], to_target[0]) - yaw)
     heading_err = _wrap(yaw - jp.arctan2(tangent[1], tangent[0]))
-    half_lane = self.lanes.inter_row[pose["world"]] / 2
+    half_lane = width / 2
     # Past the end line: beyond the EoR along the lane's end tangent, inside the lane.
-    end_t = jp.where(pose["direction"] > 0, line[-1] - line[-2], line[0] - line[1])
+    end_t = jp.where(pose["direction"] > 0, line[k - 1] - line[k - 2], line[0] - line[1])
     crossed = (xy - pose["eor"]) @ end_t > 0
 
     success = (dist < env.success_radius_m) | (crossed & (jp.abs(lateral) < half_lane))
@@ -361,7 +324,7 @@ class VineyardEnv(Env):
     left_lane = jp.abs(lateral) > half_lane
     reversed_ = jp.abs(heading_err) > jp.deg2rad(env.yaw_limit_deg)
     steps = info["episode_steps"] + 1
-    timeout = steps >= env.max_steps
+    timeout = steps >= self.lanes.steps_limit(pose["world"], pose["lane"])
     outcome = jp.select(
         [exploded, success, collision, left_lane, reversed_, timeout],
         [PHYSICS, SUCCESS, COLLISION, LEFT_LANE, REVERSED, TIMEOUT], RUNNING).astype(jp.int32)
@@ -468,9 +431,9 @@ def pure_pursuit(env: VineyardEnv, lookahead_m: float = 1.0, speed: float | None
     pose = state.info["pose"]
     d = state.pipeline_state
     xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
-    line = env.lanes.centerline[pose["world"], pose["lane"]]
-    i, _, _, _ = lane_frame(line, xy, pose["direction"])
-    rel = point_ahead(line, i, pose["direction"], ahead) - xy
+    line, k, _, _ = env.lanes.lane(pose["world"], pose["lane"])
+    i, _, _, _ = lane_frame(line, xy, pose["direction"], k)
+    rel = point_ahead(line, i, pose["direction"], ahead, k) - xy
     alpha = _wrap(jp.arctan2(rel[1], rel[0]) - yaw)
     dist = jp.maximum(jp.linalg.norm(rel), 0.3)
     w = 2.0 * v_cmd * jp.sin(alpha) / dist

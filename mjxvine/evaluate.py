@@ -31,7 +31,7 @@ import sys
 from pathlib import Path
 
 from mjxvine.atomic import check_output
-from mjxvine.config import ROBOT_NAMES, ConfigError, add_config_args, enable_compile_cache
+from mjxvine.config import ConfigError, add_config_args, enable_compile_cache
 # One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
 from mjxvine.deploy import PolicyError
 from mjxvine.evaluation import paper, video
@@ -41,7 +41,7 @@ from mjxvine.evaluation.rollout import all_lanes, parse_lanes, run_protocol
 from mjxvine.evaluation.video import RenderError, write_videos
 from mjxvine.rundir.checkpoints import WHICH
 from mjxvine.rundir.settings import policy_config
-from mjxvine.worlds import make_world
+from mjxvine.worlds import make_world, robot_spec
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -69,13 +69,20 @@ def parser() -> argparse.ArgumentParser:
   p.add_argument("--member", type=int, default=None,
                  help="of a run that trained several members (--seeds, sweeps): which one "
                       "(default: the one checkpoints/best follows, member 0)")
-  p.add_argument("--robot", choices=ROBOT_NAMES, default=None)
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml",
+                 help="a built-in robot (jackal, husky) or a robot file (docs/your-robot.md); "
+                      "its camera and speed limits may not change a trained policy's")
   p.add_argument("--noise", type=float, default=None,
                  help="depth noise factor, >= 0 (default: the config's eval.noise_factor)")
   p.add_argument("--runs", type=int, default=None,
                  help="runs per lane and direction, >= 1 (default: the config's eval.runs)")
-  p.add_argument("--world", default=None, help="test-world seed or world .json file")
-  p.add_argument("--sweep", choices=("noise", "robots"), default=None)
+  p.add_argument("--world", default=None, help="test-world seed, a saved world .json or a "
+                 "vineyard file (.geojson rows in longitude/latitude, .csv plants in metres: "
+                 "docs/your-vineyard.md; every lane, both directions)")
+  p.add_argument("--sweep", choices=("noise", "robots", "rows"), default=None,
+                 help="noise, robots: the paper's robustness tables; rows: generated test "
+                      "worlds with 80 m rows 1.8-3.0 m apart on slopes of 0-10 %% "
+                      "(mjxvine.evaluation.rows; --runs, default 1)")
   p.add_argument("--suite", choices=("paper",), default=None,
                  help="paper: the paper's whole evaluation (test worlds 0-3 with --runs, "
                       "default 5; the noise and robot tests) in one report "
@@ -130,6 +137,13 @@ def run_suite(cfg, args, out: Path) -> None:
 
 def run_sweep(cfg, args, world, out: Path) -> None:
   from mjxvine.evaluation import sweeps
+  if args.sweep == "rows":
+    from mjxvine.evaluation.rows import sweep_rows
+    say(f"evaluating {args.policy} on long rows (one compilation per grid point)...")
+    sweep_rows(cfg, args.policy, out, runs=args.runs or 1, seed=args.seed, which=args.which,
+               member=args.member, say=say)
+    print((out / "rows.md").read_text())
+    return
   sweep = sweeps.sweep_noise if args.sweep == "noise" else sweeps.sweep_robots
   sweep(cfg, args.policy, world, out, args.seed, args.which, args.member)
   print((out / f"{args.sweep}.md").read_text())
@@ -167,7 +181,8 @@ def run(args) -> int:
     except ConfigError as e:
       print(f"config error: {e}", file=sys.stderr)
       return 2
-    world = make_world(args.world or str(cfg.world.test_seed), cfg.world)
+    world = make_world(args.world or str(cfg.world.test_seed), cfg.world,
+                       robot_width_m=robot_spec(cfg.robot.name).width)
     if args.video_lanes:  # a bad lane is one line before anything is built
       parse_lanes(args.video_lanes, len(world.lanes))
     if args.video or args.gif:  # before the rollout: no GL, no ffmpeg is one line

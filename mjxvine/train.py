@@ -94,6 +94,7 @@ def resumed_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
   cfg = config_from_args(argparse.Namespace(config=str(resolved), overrides=args.overrides))
   if args.seeds or args.sweep:
     p.error("--resume: the seeds and sweep come from the run's config.yaml")
+  check_train_files(p, cfg)
   return cfg, run_dir
 
 
@@ -116,6 +117,7 @@ def new_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
     p.error(f"--run-dir {run_dir}: exists and is not a directory")
   if (run_dir / "checkpoints").exists():
     p.error(f"{run_dir} already holds a run: use --resume {run_dir} or another --run-dir")
+  check_train_files(p, cfg)  # before the run directory is made
   try:  # before anything is compiled
     check_output(run_dir, "--run-dir", directory=True)
   except OutputError as e:
@@ -177,6 +179,19 @@ def main(argv=None) -> int:
     print(f"error: {busy_message(run_dir)}", file=sys.stderr)
     return EXIT_USAGE
   return run(cfg, run_dir, args)
+
+
+def check_train_files(p: argparse.ArgumentParser, cfg: Config) -> None:
+  """Reads `world.train_files` once before anything is made or compiled: a missing or bad
+  vineyard file is one line (`p.error`, exit 2)."""
+  from mjxvine.worlds import make_world, robot_spec
+  from mjxvine.worlds.store import train_files
+  for path in train_files(cfg.world):
+    try:
+      make_world(path, cfg.world, flag="world.train_files",
+                 robot_width_m=robot_spec(cfg.robot.name).width)
+    except (ValueError, FileNotFoundError) as e:  # WorldFileError is a ValueError
+      p.error(str(e))
 
 
 def _initialize_distributed(p: argparse.ArgumentParser, args) -> None:

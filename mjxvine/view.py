@@ -35,13 +35,13 @@ def has_display() -> bool:
 
 def _world(spec: str, cfg):
   """--world: "test" (the config's test world), "train" (its first training world), a
-  test-world seed or a world .json file."""
-  from mjxvine.worlds import generate_world, make_world
+  test-world seed, a world .json file or a vineyard file (.geojson, .csv)."""
+  from mjxvine.worlds import generate_world, make_world, robot_spec
   if spec == "test":
     return make_world(str(cfg.world.test_seed), cfg.world)
   if spec == "train":
     return generate_world("train", cfg.world.train_seed, cfg.world)
-  return make_world(spec, cfg.world)
+  return make_world(spec, cfg.world, robot_width_m=robot_spec(cfg.robot.name).width)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -55,7 +55,8 @@ def parser() -> argparse.ArgumentParser:
                  help="of a run that trained several members: which one (default: the one "
                       "checkpoints/best follows, member 0)")
   p.add_argument("--world", default="test",
-                 help="test (default), train, a test-world seed or a world .json file")
+                 help="test (default), train, a test-world seed, a world .json file or a "
+                      "vineyard file (.geojson, .csv: docs/your-vineyard.md)")
   p.add_argument("--lane", default="1F", help="lane and direction, e.g. 4R (default 1F)")
   p.add_argument("--noise", type=float, default=None,
                  help="depth noise factor, >= 0 (default: the config's eval.noise_factor)")
@@ -80,7 +81,7 @@ def load(args):
   world = _world(args.world, cfg)
   ((lane, direction),) = parse_lanes(args.lane, len(world.lanes))
   noise = cfg.eval.noise_factor if args.noise is None else args.noise
-  cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
+  cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})  # per lane: `lanes.lane_steps`
   env = VineyardEnv(cfg, [world], noise_factor=noise)
   policy, name = load_policy(args.policy, env, args.which, args.member)
   return env, policy, name, source, world, (lane, direction)

@@ -380,6 +380,20 @@ def test_reference_agreement_worlds(kind, robot):
 
 
 @needs_worlds
+def test_reference_agreement_on_slopes():
+  """An 80 m test world on a 10 % slope along its rows and 5 % across: the camera sees the
+  ground rise metres away, and the refinement the slope turns on keeps it on mj_multiRay."""
+  cfg = replace(Config(), camera={"height": 24, "width": 32},
+                world={"slope_pct": 10.0, "cross_slope_pct": 5.0, "test_length_m": 80.0})
+  world = generate_world("test", 3, cfg.world)
+  model = build_model(world, cfg)
+  cam = depth.DepthCamera.create(model, cfg.camera)
+  assert cam.terrain_refine == 3 and cam.hfield_size[2] > 8.0  # +-4.4 m of slope
+  render = jax.jit(partial(depth.render_depth_info, cam))
+  check_agreement(model, cam, render, random_poses(model, world, 6, seed=1, tilt=0.08))
+
+
+@needs_worlds
 def test_reference_agreement_112():
   """Full-size images of a train world, a batch of poses."""
   cfg = Config()

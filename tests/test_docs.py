@@ -316,6 +316,7 @@ def slow_dir(policy_dir, tmp_path_factory):
   one wrote (the getting-started run, then its evaluation and export)."""
   d = tmp_path_factory.mktemp("slow")
   (d / "experiments").symlink_to(ROOT / "experiments")
+  (d / "examples").symlink_to(ROOT / "examples")
   (d / "policy.npz").symlink_to(policy_dir / "policy.npz")
   return d
 

@@ -85,7 +85,7 @@ def test_reward_matches_the_paper(env, fns):
 @pytest.mark.slow  # compiles the env step (~45 s, 2 cores); the trainer's tests step it
 def test_terminations(env, fns):
   _, step = fns
-  half = float(env.lanes.inter_row[0]) / 2
+  half = float(env.lanes.width_m[0, 0]) / 2
   # env 0: yawed 90 deg -> reversed; env 1: beside the row -> left lane;
   # env 2: on a plant -> collision; env 3: next to its EoR -> success.
   trunk = np.asarray(env.world_model(0).geom_pos[env._trunk_ids[0]])

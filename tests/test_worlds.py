@@ -167,7 +167,9 @@ def test_worlds_cli(tmp_path):
     mjx.put_model(m)
     doc = json.loads((out / "world.json").read_text())
     assert doc["kind"] == kind and doc["robot"] == robot and doc["seed"] == 0
-    assert set(doc["lanes"][0]) == {"id", "shape", "centerline", "eor_forward", "eor_reverse"}
+    assert set(doc["lanes"][0]) == {"id", "shape", "centerline", "eor_forward", "eor_reverse",
+                                    "width_m"}
+    assert doc["lanes"][0]["width_m"] == pytest.approx(doc["inter_row_m"], abs=1e-4)
     assert len(doc["rows"]) == len(doc["lanes"]) + 1
     assert sum(len(r) for r in doc["rows"]) == sum(
         mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, i).endswith("_trunk") and

@@ -82,7 +82,10 @@ def summarize(cfg, world, cases, idx, raw: dict) -> dict:
   overall = group_metrics(all_err, all_act, [int(outcome[i]) for i in idx],
                           [int(steps[i]) for i in idx], cfg.env.control_dt, all_m, all_frac)
   overall.update(mean_of_rows(rows))
-  return {"robot": cfg.robot.name, "world": {"kind": world.kind, "seed": world.seed},
+  where = {"kind": world.kind, "seed": world.seed}
+  if world.frame:  # a vineyard file's block
+    where["source"] = world.frame.get("source", "")
+  return {"robot": cfg.robot.name, "world": where,
           "overall": overall, "rows": rows, "wall_s": raw["wall_s"], "trajectories": trajs}
 
 

@@ -34,10 +34,16 @@ def covered_cell(r: dict) -> str:
 
 
 def results_markdown(doc: dict) -> str:
-  """A table laid out like the paper's, with the paper's numbers beside ours."""
-  lines = [f"# Evaluation: {doc['policy']} ({doc['robot']}, noise x{doc['noise']})", "",
-           "| test row | shape | lane covered | MAE m (paper) | RMSE m (paper) | v m/s (paper) "
-           "| w rad/s (paper) | success (paper) |", "|---|---|---|---|---|---|---|---|"]
+  """A table laid out like the paper's, with the paper's numbers beside ours (not on a
+  vineyard file's block: its lanes are not the paper's)."""
+  source = doc.get("world", {}).get("source")
+  paper = {} if source is not None else PAPER
+  head = ("| test row | shape | lane covered | MAE m (paper) | RMSE m (paper) | v m/s (paper) "
+          "| w rad/s (paper) | success (paper) |") if paper else (
+          "| lane | shape | lane covered | MAE m | RMSE m | v m/s | w rad/s | success |")
+  where = f" on {source}" if source is not None else ""
+  lines = [f"# Evaluation: {doc['policy']} ({doc['robot']}, noise x{doc['noise']}){where}", "",
+           head, "|---|---|---|---|---|---|---|---|"]
   o = doc["overall"]
   # the paper's overall row is the mean of its rows: so is ours (the pooled one below)
   by_rows = dict(o, lane="overall", direction="", shape="mean of rows",
@@ -46,7 +52,7 @@ def results_markdown(doc: dict) -> str:
                  w_std=o["w_std_rows"])
   for r in doc["rows"] + [by_rows]:
     key = f"{r['lane']}{r['direction']}"
-    p = PAPER.get(key)
+    p = paper.get(key)
     ps = (lambda i, nd=3: f" ({p[i]:.{nd}f})") if p else (lambda i, nd=3: "")
     lines.append(
         f"| {key} | {r['shape']} | {covered_cell(r)} | {metric_cell(r, 'mae_m')}{ps(0)} | "

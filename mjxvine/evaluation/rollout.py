@@ -24,8 +24,17 @@ from mjxvine.evaluation.geometry import signed_offsets
 from mjxvine.evaluation.metrics import summarize
 from mjxvine.evaluation.paper import DIRECTIONS
 from mjxvine.evaluation.policies import Policy, load_policy
+from mjxvine.lanes import lane_steps as steps_for_length
 
 CHUNK_STEPS = 50  # control steps per compiled chunk; the host checks for the end between
+
+
+def lane_steps(cfg: Config, world, lane: int) -> int:
+  """The protocol's time limit (control steps) on lane `lane` (1-based) of `world`:
+  `eval.max_steps` (the paper's 700) for rows up to 24 m, in proportion beyond
+  (`mjxvine.lanes.lane_steps`; the env ends each episode there itself)."""
+  line = world.lanes[lane - 1].centerline
+  return steps_for_length(cfg.eval.max_steps, line[-1, 0] - line[0, 0])
 
 
 def protocol_steps(env, policy: Policy, b: int, record: Sequence[int] = ()):
@@ -134,9 +143,11 @@ def drive(env, policy: Policy, lane: int, direction: str, key, max_steps: int | 
   (1-based) in `direction` ("F"/"R"), as the evaluator does (`protocol_steps` with one
   env). Yields (qpos (nq,), action (2,) [v m/s, w rad/s], outcome code) after each control
   step, first the start (action 0, outcome running), and stops after the step that ends
-  the episode or after `max_steps` (default `eval.max_steps`). The keys (depth noise, a
-  stochastic policy's draws) are `rollout`'s for the same `key`."""
-  limit = env.cfg.eval.max_steps if max_steps is None else max_steps
+  the episode or after `max_steps` (default the protocol's, `lane_steps`). The keys (depth
+  noise, a stochastic policy's draws) are `rollout`'s for the same `key`."""
+  worlds = getattr(env, "worlds", None)  # (an env without vineyards: eval.max_steps)
+  limit = max_steps if max_steps is not None else (
+      lane_steps(env.cfg, worlds[0], lane) if worlds else env.cfg.eval.max_steps)
   reset, body, _ = protocol_steps(env, policy, 1)
   step = jax.jit(body)
   k_reset, k_run = jax.random.split(key)
@@ -195,7 +206,9 @@ def rollout_cases(cfg: Config, policy_spec: str, worlds: list, cases, *,
   name) with raw = dict of the `rollout` arrays (xy, act, alive, outcome, steps, frames of
   the cases `record`) and wall_s (s)."""
   from mjxvine.env import VineyardEnv  # (the env's imports are heavy: only when needed)
-  # the protocol's episode limit, whatever the training episodes were
+  # the protocol's episode limits (`lane_steps`, applied by the env per lane), whatever
+  # the training episodes were
+  limits = [lane_steps(cfg, worlds[w], lane) for w, lane, _, _ in cases]
   cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
   env = VineyardEnv(cfg, list(worlds))
   name = policy_spec
@@ -205,7 +218,7 @@ def rollout_cases(cfg: Config, policy_spec: str, worlds: list, cases, *,
   xy, act, alive, outcome, steps, frames = rollout(
       env, policy, [l - 1 for _, l, _, _ in cases], [1.0 if d == "F" else -1.0
                                                      for _, _, d, _ in cases],
-      jax.random.PRNGKey(seed), cfg.env.max_steps, worlds=[w for w, _, _, _ in cases],
+      jax.random.PRNGKey(seed), max(limits), worlds=[w for w, _, _, _ in cases],
       noise=[n for _, _, _, n in cases], record=record)
   raw = dict(xy=xy, act=act, alive=alive, outcome=outcome, steps=steps, frames=frames,
              wall_s=time.time() - t0)

@@ -63,8 +63,8 @@ def make_start_eval(env: VineyardEnv, act: Callable, starts: int, members: int =
 
   def lateral(state):
     pose = state.info["pose"]
-    line = env.lanes.centerline[pose["world"], pose["lane"]]
-    return lane_frame(line, state.pipeline_state.qpos[:2], pose["direction"])[2]
+    line, k, _, _ = env.lanes.lane(pose["world"], pose["lane"])
+    return lane_frame(line, state.pipeline_state.qpos[:2], pose["direction"], k)[2]
 
   def step(params, carry, key):
     state, outcome, err, speed, steps = carry

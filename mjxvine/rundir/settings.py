@@ -6,7 +6,9 @@ config.yaml; an exported `.npz` holds its camera, action box, yaw input and netw
 in its metadata and arrays. `policy_config` builds the config from that source, then lays
 `--config FILE` and `--set` over it: they only override. What the networks were trained
 for (`POLICY_KEYS`: image size, depth range, network sizes, action box) may not change;
-an override that changes it is one `ConfigError` line naming the key and both values.
+an override that changes it is one `ConfigError` line naming the key and both values, and
+so is a robot file (`--robot FILE.yaml`) that asks for another image size or action box:
+the policy's values are kept only by an explicit `--set`.
 
 Only numpy, yaml and the standard library are imported here (jax and orbax only when a
 checkpoint is located), so argument checks stay fast.
@@ -18,7 +20,8 @@ from pathlib import Path
 from typing import Sequence
 
 from mjxvine.rundir.checkpoints import checkpoint_item, run_dir_of
-from mjxvine.config import Config, ConfigError, load_config, read_yaml
+from mjxvine.config import Config, ConfigError, load_config, read_yaml, robot_spec
+from mjxvine.robot_files import config_values
 from mjxvine.deploy import read_policy_file
 
 # The keys a trained actor is tied to: its input size and scaling, its layer sizes and
@@ -94,8 +97,14 @@ def policy_config(spec: str | Path, config_file: str | Path | None = None,
     base, source = read_yaml(found), str(found)
   own = load_config(None, (), base)
   cfg = load_config(config_file, overrides, base)
+  from_robot = config_values(robot_spec(cfg.robot.name))  # under --set (RobotConfig)
   for key in POLICY_KEYS:
     trained, now = _value(own, key), _value(cfg, key)
+    if now != trained and key in from_robot and not any(
+        o.split("=", 1)[0].strip() == key for o in overrides):
+      raise ConfigError(f"{key} = {now}: the robot file {cfg.robot.name} asks for it, but "
+                        f"the policy was trained with {trained} ({source}); its networks "
+                        f"fit only that (--set {key}={trained} keeps the policy's)")
     if now != trained:
       raise ConfigError(f"{key} = {now}: the policy was trained with {trained} ({source}); "
                         f"its networks fit only that (drop the override)")

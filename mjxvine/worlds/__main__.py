@@ -3,6 +3,7 @@
   python -m mjxvine.worlds --kind test --seed 0 --robot jackal --out out/test0
   python -m mjxvine.worlds --kind train --seed 3 --out out/train3 --depth-at 2,0.9,0
   python -m mjxvine.worlds --kind test --out out/test0 --depth-at 2,0,0 --policy policy.npz
+  python -m mjxvine.worlds --from examples/vineyard-block.geojson --out out/block
 
 --depth-at also draws the robot and its camera frustum on the map (world.png). The depth
 image is rendered with the config's camera (--set camera.width=...), or with the image
@@ -24,7 +25,7 @@ from mjxvine.config import add_config_args, config_from_args
 from mjxvine.deploy import PolicyFormatError, read_policy_file
 from mjxvine.worlds.build import build_spec, terrain_height
 from mjxvine.worlds.plot import save_map
-from mjxvine.worlds.robots import ROBOTS
+from mjxvine.worlds.robots import robot_spec
 from mjxvine.worlds.store import make_world
 
 SETTLE_S = 1.0
@@ -105,7 +106,16 @@ def main(argv=None) -> int:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--kind", choices=("train", "test"), default="test")
   p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--robot", choices=tuple(ROBOTS), default=None)
+  p.add_argument("--from", dest="source", default=None, metavar="FILE",
+                 help="a vineyard file instead of a generated world: GeoJSON rows in "
+                      "longitude/latitude or a CSV of plants in metres "
+                      "(docs/your-vineyard.md), or a saved world .json")
+  p.add_argument("--plant-spacing", type=float, default=None, metavar="M",
+                 help="with --from: plant spacing (m) of GeoJSON row lines that do not "
+                      "give plant_spacing_m")
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml",
+                 help="a built-in robot (jackal, husky) or a robot file (docs/your-robot.md); "
+                      "default: the config's robot.name")
   p.add_argument("--out", required=True, help="output directory")
   p.add_argument("--depth-at", default=None, metavar="X,Y,YAW",
                  help="also place the robot there (m, m, rad), write its depth image and "
@@ -130,20 +140,32 @@ def main(argv=None) -> int:
       return 2
   cfg = config_from_args(args, extra)
   try:
-    out = check_output(args.out, "--out", directory=True)
-    world = make_world(str(args.seed), cfg.world, kind=args.kind, flag="--seed")
-  except (OutputError, ValueError) as e:
+    if args.source:
+      world = make_world(args.source, cfg.world, flag="--from",
+                         robot_width_m=robot_spec(cfg.robot.name).width,
+                         plant_spacing_m=args.plant_spacing)
+    else:
+      world = make_world(str(args.seed), cfg.world, kind=args.kind, flag="--seed")
+    out = check_output(args.out, "--out", directory=True)  # after a bad file: nothing made
+  except (OutputError, ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
   spec = build_spec(world, cfg)
   model = spec.compile()
   write_text(out / "world.xml", spec.to_xml())
   write_text(out / "world.json", json.dumps(world.to_json(cfg.robot.name), indent=1))
-  save_map(world, out / "world.png", pose=pose, robot=ROBOTS[cfg.robot.name],
+  save_map(world, out / "world.png", pose=pose, robot=robot_spec(cfg.robot.name),
            fovx_deg=cfg.camera.fovx_deg, max_depth_m=cfg.camera.max_depth_m)
-  print(f"{args.kind} world seed {args.seed} ({cfg.robot.name}): {len(world.plant_xy)} plants, "
+  name = (f"vineyard {args.source}" if args.source else
+          f"{args.kind} world seed {args.seed}")
+  print(f"{name} ({cfg.robot.name}): {len(world.plant_xy)} plants, "
         f"{len(world.lanes)} lanes, inter-row {world.inter_row_m:.2f} m, spacing "
         f"{world.spacing_m:.2f} m -> {out}/world.xml, world.json, world.png")
+  if world.frame:
+    for lane in world.lanes:
+      line = lane.centerline
+      print(f"  lane {lane.id}: {line[-1, 0] - line[0, 0]:.1f} m long, "
+            f"{world.lane_width(lane):.2f} m wide")
   if pose is not None:
     write_depth(model, world, cfg, pose, out)
     print(f"depth at {pose} ({cfg.camera.height}x{cfg.camera.width}, fovx "

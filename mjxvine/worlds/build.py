@@ -16,7 +16,7 @@ import numpy as np
 
 from mjxvine.config import Config
 from mjxvine.worlds.layout import Vineyard
-from mjxvine.worlds.robots import ROBOTS, add_robot
+from mjxvine.worlds.robots import ROBOTS, add_robot, robot_spec
 
 PARKED_Z = -100.0
 TERRAIN_BASE_M = 0.2  # heightfield base depth under its lowest point
@@ -46,9 +46,12 @@ def random_poses(model: mujoco.MjModel, world: Vineyard, n: int, seed: int = 0,
   """`n` host MjData of `model` (built from `world`) with the robot on random lanes and
   points along them, alternate travel directions, yaw jitter +-0.4 rad and roll and pitch
   uniform in +-`tilt` rad, after `mj_forward` (no physics: the robot hovers 2 cm above
-  the terrain at the largest wheel radius). Camera poses for depth tests and benchmarks."""
+  the terrain at the largest wheel radius of the built-in robots and of `model`'s). Camera
+  poses for depth tests and benchmarks."""
   rng = np.random.default_rng(seed)
-  radius = max(r.wheel_radius for r in ROBOTS.values())
+  wheel = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "wheel0")
+  own = [float(model.geom_size[wheel, 0])] if wheel >= 0 else []
+  radius = max([r.wheel_radius for r in ROBOTS.values()] + own)
   out = []
   for i in range(n):
     line = world.lanes[i % len(world.lanes)].centerline
@@ -79,14 +82,23 @@ def plant_slots_for(worlds: Sequence[Vineyard], cfg: Config) -> int:
   return -(-need // SLOT_MULTIPLE) * SLOT_MULTIPLE
 
 
-def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None) -> mujoco.MjSpec:
+def terrain_span(world: Vineyard, cfg: Config) -> float:
+  """The half-range (m) of `world`'s heightfield: its largest |height| (at least the
+  config's bump amplitude, and 0.1 mm)."""
+  return max(cfg.world.terrain_amplitude_m, float(np.abs(world.terrain).max()), 1e-4)
+
+
+def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
+               terrain_span_m: float | None = None) -> mujoco.MjSpec:
   """The MjSpec of `world` with the robot of `cfg.robot` at the start of lane 1, forward.
 
   `plant_slots` (default: `plant_slots_for([world], cfg)`) fixes the number of plant geom
-  pairs, so that worlds built with the same value batch together.
+  pairs, and `terrain_span_m` (default `terrain_span(world, cfg)`) the heightfield's
+  height range, so that worlds built with the same values batch together.
   """
   spec = mujoco.MjSpec()
-  spec.modelname = f"vineyard_{cfg.robot.name}"  # the same for all worlds: names are static
+  # the same for all worlds (names are static); a robot file's name, not its path
+  spec.modelname = f"vineyard_{robot_spec(cfg.robot.name).name}"
   spec.option.timestep = cfg.env.physics_dt
   spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
   spec.option.iterations = SOLVER_ITERATIONS
@@ -102,14 +114,19 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None) -> 
   spec.worldbody.add_light(name="sun", pos=[0, 0, 30], dir=[0.2, 0.2, -1],
                            type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
 
-  # Terrain: MuJoCo mixes friction by max, so the wheels' friction decides. Heights span exactly [-amp, amp] (layout pins them), so MuJoCo's [0, 1]
-  # rescaling of the data is exact and the same for every world.
+  # Terrain: MuJoCo mixes friction by max, so the wheels' friction decides. Heights span
+  # exactly [-amp, amp] (two far corners, in the margin, pinned), so MuJoCo's [0, 1]
+  # rescaling of the data is exact and the same for every world of a batch.
   xmin, xmax, ymin, ymax = world.terrain_extent
-  amp = max(cfg.world.terrain_amplitude_m, 1e-4)
+  amp = terrain_span(world, cfg) if terrain_span_m is None else terrain_span_m
   nrow, ncol = world.terrain.shape
   hfield = spec.add_hfield(name="terrain", nrow=nrow, ncol=ncol,
                            size=[(xmax - xmin) / 2, (ymax - ymin) / 2, 2 * amp, TERRAIN_BASE_M])
-  hfield.userdata = ((world.terrain + amp) / (2 * amp)).ravel().tolist()
+  data = (world.terrain + amp) / (2 * amp)
+  if data[0, 0] != 0.0 or data[-1, -1] != 1.0:  # generated worlds come pinned: unchanged
+    data = data.copy()
+    data[0, 0], data[-1, -1] = 0.0, 1.0
+  hfield.userdata = data.ravel().tolist()
   spec.worldbody.add_geom(name="terrain", type=mujoco.mjtGeom.mjGEOM_HFIELD,
                           hfieldname="terrain", pos=[(xmin + xmax) / 2, (ymin + ymax) / 2, -amp],
                           group=0, material="soil", friction=[0.1, 0.005, 0.0001])
@@ -137,7 +154,7 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None) -> 
     spec.worldbody.add_geom(name=f"plant{i}_canopy", type=mujoco.mjtGeom.mjGEOM_ELLIPSOID,
                             pos=canopy_pos, size=canopy_size, rgba=[0.2, 0.5, 0.15, 1], **common)
 
-  robot = ROBOTS[cfg.robot.name]
+  robot = robot_spec(cfg.robot.name)
   max_wheel = 1.5 * (cfg.env.v_max + cfg.env.w_max * robot.track_slip * robot.track / 2) / robot.wheel_radius
   add_robot(spec, robot, kv=cfg.robot.wheel_kv * robot.mass, friction=cfg.robot.wheel_friction,
             armature=cfg.robot.wheel_armature * robot.mass,
@@ -149,15 +166,18 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None) -> 
   return spec
 
 
-def build_model(world: Vineyard, cfg: Config, plant_slots: int | None = None) -> mujoco.MjModel:
+def build_model(world: Vineyard, cfg: Config, plant_slots: int | None = None,
+                terrain_span_m: float | None = None) -> mujoco.MjModel:
   """Compiles the MuJoCo model of `world` with the robot and camera of `cfg`."""
-  return build_spec(world, cfg, plant_slots).compile()
+  return build_spec(world, cfg, plant_slots, terrain_span_m).compile()
 
 
 def build_models(worlds: Sequence[Vineyard], cfg: Config) -> list[mujoco.MjModel]:
-  """Models of `worlds` with a common number of plant slots, ready for `batch_models`."""
+  """Models of `worlds` with a common number of plant slots and terrain height range,
+  ready for `batch_models`."""
   slots = plant_slots_for(worlds, cfg)
-  return [build_model(w, cfg, slots) for w in worlds]
+  span = max(terrain_span(w, cfg) for w in worlds)
+  return [build_model(w, cfg, slots, span) for w in worlds]
 
 
 def plant_geom_ids(model: mujoco.MjModel, slots: int) -> tuple[np.ndarray, np.ndarray]:

@@ -26,7 +26,9 @@ CENTERLINE_STEP_M = 0.25  # sampling of lane centerlines
 
 @dataclasses.dataclass(frozen=True)
 class Lane:
-  """A lane between two plant rows. `centerline` is (K, 2) metres, ordered along +x."""
+  """A lane between two plant rows. `centerline` is (K, 2) metres, ordered along +x, one
+  sample every `CENTERLINE_STEP_M` of x or less. `width_m`: the distance between its two
+  rows (m; None: the world's `inter_row_m`, as in generated worlds)."""
   id: int
   shape: str
   left_row: int
@@ -34,6 +36,7 @@ class Lane:
   centerline: np.ndarray
   eor_forward: np.ndarray  # (2,) the +x end of the centerline
   eor_reverse: np.ndarray  # (2,) the x = 0 end
+  width_m: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +64,9 @@ class Vineyard:
   lanes: tuple[Lane, ...]
   terrain: np.ndarray
   terrain_extent: tuple[float, float, float, float]
+  # A world read from a vineyard file (`mjxvine.worlds.blocks`): where the block frame lies
+  # in the file's frame (origin, heading, source); None for generated worlds.
+  frame: dict | None = None
 
   @property
   def num_rows(self) -> int:
@@ -84,8 +90,14 @@ class Vineyard:
             "centerline": l.centerline.round(4).tolist(),
             "eor_forward": l.eor_forward.round(4).tolist(),
             "eor_reverse": l.eor_reverse.round(4).tolist(),
+            "width_m": round(self.lane_width(l), 4),
         } for l in self.lanes],
+        **({"frame": self.frame} if self.frame else {}),
     }
+
+  def lane_width(self, lane: Lane) -> float:
+    """The distance (m) between the two rows of `lane`."""
+    return self.inter_row_m if lane.width_m is None else float(lane.width_m)
 
 
 def _row_offsets(kind: str, num_rows: int, length: float, amplitude: float):
@@ -142,8 +154,8 @@ def _varied_offsets(rng: np.random.Generator, num_rows: int, length: float,
   return [row(j) for j in range(num_rows)]
 
 
-def _terrain(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
-  """Bumps of +- amplitude on a `terrain_bump_m` grid, bilinearly refined to the cell size."""
+def terrain_bumps(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
+  """Heights (m) over `extent`: bumps of +- amplitude on a `terrain_bump_m` grid, bilinearly refined to the cell size."""
   xmin, xmax, ymin, ymax = extent
   ncol = int(round((xmax - xmin) / cfg.terrain_cell_m)) + 1
   nrow = int(round((ymax - ymin) / cfg.terrain_cell_m)) + 1
@@ -164,6 +176,15 @@ def _terrain(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
   # never driven on) to -+amplitude makes that rescaling the identity for every world.
   h[0, 0], h[-1, -1] = -cfg.terrain_amplitude_m, cfg.terrain_amplitude_m
   return h
+
+
+def slope_plane(shape: tuple[int, int], extent, slope_pct: float, cross_pct: float):
+  """Heights (m) of a plane rising `slope_pct` % along +x and `cross_pct` % along +y, zero
+  at the rectangle's centre, on the (nrow, ncol) grid over `extent`."""
+  xmin, xmax, ymin, ymax = extent
+  x = np.linspace(xmin, xmax, shape[1]) - (xmin + xmax) / 2
+  y = np.linspace(ymin, ymax, shape[0]) - (ymin + ymax) / 2
+  return slope_pct / 100 * x[None, :] + cross_pct / 100 * y[:, None]
 
 
 def _pick_gaps(rng, kind, row_of_slot, x_index, n_per_row, num_rows, cfg: WorldConfig,
@@ -246,12 +267,15 @@ def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
   lanes = tuple(Lane(k, shapes[k - 1], k - 1, k, *_centerline(xy, row, k, length))
                 for k in range(1, num_rows))
   extent = world_extent(cfg)
+  terrain = terrain_bumps(rng, cfg, extent)
+  if cfg.slope_pct or cfg.cross_slope_pct:
+    terrain = terrain + slope_plane(terrain.shape, extent, cfg.slope_pct, cfg.cross_slope_pct)
   return Vineyard(
       kind=kind, seed=int(seed), inter_row_m=inter_row, spacing_m=spacing, length_m=length,
       row_y0=row_y0, plant_xy=xy, plant_yaw=plant_yaw[keep],
       plant_row=row, trunk_height=trunk_height[keep],
       trunk_radius=cfg.trunk_radius_m, canopy_half=canopy_half[keep],
-      canopy_z=canopy_z[keep], lanes=lanes, terrain=_terrain(rng, cfg, extent),
+      canopy_z=canopy_z[keep], lanes=lanes, terrain=terrain,
       terrain_extent=extent)
 
 
@@ -286,6 +310,7 @@ class WorldFileError(ValueError):
   """A world file that is not one `save_world` wrote: one line naming the file and fault."""
 
 
+_OPTIONAL = {"width_m", "frame"}  # fields that older world files lack
 MAX_SEED = 2**32 - 1  # numpy's seeds: a larger one would silently wrap
 
 
@@ -324,23 +349,28 @@ def load_world(path: str | Path) -> Vineyard:
     raise WorldFileError(f"{path}: not a world file (not JSON: {e})") from None
   except OSError as e:
     raise WorldFileError(f"{path}: cannot be read ({e.strerror})") from None
-  fields = {f.name for f in dataclasses.fields(Vineyard)}
+  fields = {f.name for f in dataclasses.fields(Vineyard)} - _OPTIONAL
   if not isinstance(d, dict) or not fields <= set(d):
     missing = sorted(fields - set(d)) if isinstance(d, dict) else ["everything"]
     raise WorldFileError(f"{path}: not a world file (python -m mjxvine.worlds writes one); "
                          f"missing {', '.join(missing)}")
-  lane_fields = {f.name for f in dataclasses.fields(Lane)}
+  lane_fields = {f.name for f in dataclasses.fields(Lane)} - _OPTIONAL
   if not isinstance(d["lanes"], list) or not d["lanes"] or not all(
-      isinstance(l, dict) and set(l) == lane_fields for l in d["lanes"]):
+      isinstance(l, dict) and lane_fields <= set(l) <= lane_fields | _OPTIONAL
+      for l in d["lanes"]):
     raise WorldFileError(f"{path}: lanes must be a non-empty list of lanes with "
                          f"{', '.join(sorted(lane_fields))}")
+  if d.get("frame") is not None and not isinstance(d["frame"], dict):
+    raise WorldFileError(f"{path}: frame must be a mapping")
   try:
     lanes = tuple(Lane(id=int(l["id"]), shape=str(l["shape"]), left_row=int(l["left_row"]),
                        right_row=int(l["right_row"]),
                        centerline=_array(path, f"lane {l['id']} centerline", l["centerline"],
                                          (-1, 2)),
                        eor_forward=_array(path, "eor_forward", l["eor_forward"], (2,)),
-                       eor_reverse=_array(path, "eor_reverse", l["eor_reverse"], (2,)))
+                       eor_reverse=_array(path, "eor_reverse", l["eor_reverse"], (2,)),
+                       width_m=(None if l.get("width_m") is None else
+                                float(_array(path, "width_m", l["width_m"], ()))))
                   for l in d.pop("lanes"))
     plants = len(d["plant_xy"]) if isinstance(d["plant_xy"], list) else -1
     shapes = {"row_y0": (-1,), "plant_xy": (plants, 2), "plant_yaw": (plants,),

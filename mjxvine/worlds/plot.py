@@ -3,6 +3,8 @@ backend is left to the caller, so that notebooks keep theirs)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.lines import Line2D
@@ -92,8 +94,10 @@ def save_map(world: Vineyard, path, title: str | None = None, *, pose=None,
   ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
   fig.colorbar(image, ax=ax, location="bottom", fraction=0.04, pad=0.16, shrink=0.5,
                aspect=40, label="terrain height [m]")
-  ax.set_title(title or f"{world.kind} vineyard, seed {world.seed}: inter-row "
-               f"{world.inter_row_m:.2f} m, spacing {world.spacing_m:.2f} m")
+  name = (f"{Path(world.frame['source']).name or 'vineyard file'} (rows along +x)"
+          if world.frame else f"{world.kind} vineyard, seed {world.seed}")
+  ax.set_title(title or f"{name}: inter-row {world.inter_row_m:.2f} m, spacing "
+               f"{world.spacing_m:.2f} m")
   with atomic_path(path) as tmp:
     fig.savefig(tmp, dpi=110, bbox_inches="tight")
   plt.close(fig)

@@ -1,15 +1,18 @@
-"""Robot models (docs/design.md, Robots): Jackal and Husky as a free-joint chassis on four
-driven sphere wheels, with the depth camera at the paper's mount. Lengths in metres, masses
-in kg. The robots' dimensions (`RobotSpec`, `ROBOTS`) live in `mjxvine.config`, which
+"""Robot models (docs/design.md, Robots): a robot (Jackal, Husky or a robot file,
+docs/your-robot.md) as a free-joint chassis on four driven sphere wheels, with the depth
+camera at its mount. Lengths in metres, masses in kg. The robots' dimensions (`RobotSpec`,
+`ROBOTS`, `robot_spec`) come from `mjxvine.robot_files` through `mjxvine.config`, which
 validates configs against them; they are re-exported here."""
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 
-from mjxvine.config import ROBOTS, RobotSpec
+from mjxvine.config import ROBOTS, RobotSpec, robot_spec
 
-__all__ = ["ROBOTS", "RobotSpec", "WHEEL_SIDES", "add_robot", "wheel_speeds"]
+__all__ = ["ROBOTS", "RobotSpec", "robot_spec", "WHEEL_SIDES", "add_robot", "wheel_speeds"]
 
 # Wheel order of the actuators: front-left, rear-left, front-right, rear-right.
 WHEEL_SIDES = (1, 1, -1, -1)  # +1 left, -1 right
@@ -46,9 +49,12 @@ def add_robot(spec: mujoco.MjSpec, robot: RobotSpec, *, kv: float, friction: flo
     act.set_to_velocity(kv=kv)
     act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
     act.ctrlrange = [-max_wheel_speed, max_wheel_speed]
-  # MuJoCo cameras look along -z with +y up: x_cam = -y_body (right), y_cam = +z_body.
+  # MuJoCo cameras look along -z with +y up: x_cam = -y_body (right), y_cam = +z_body
+  # turned about the body's y axis by the pitch, so the view (-z_cam) tips down by it;
+  # pitch 0 is exactly [0, -1, 0, 0, 0, 1].
+  pitch = math.radians(robot.camera_pitch_deg)
   chassis.add_camera(name="depth", pos=[robot.camera_ahead, 0, robot.camera_height - r],
-                     xyaxes=[0, -1, 0, 0, 0, 1], fovy=fovy_deg)
+                     xyaxes=[0, -1, 0, math.sin(pitch), 0, math.cos(pitch)], fovy=fovy_deg)
 
 
 def wheel_speeds(v, w, robot: RobotSpec):

@@ -1,0 +1,241 @@
+"""Robots as data: `RobotSpec` and the robot YAML files that describe one (docs/your-robot.md).
+
+A robot file groups its numbers, units in the key names (metres, kg, degrees, pixels):
+
+  name: jackal
+  body: {length_m: 0.508, width_m: 0.430, height_m: 0.250, chassis_mass_kg: 16.5}
+  wheels: {radius_m: 0.098, mass_kg: 0.477, track_m: 0.376, wheelbase_m: 0.262, track_slip: 1.8}
+  camera: {ahead_m: 0.21, height_m: 0.26, pitch_deg: 0.0}
+
+with the optional camera.pitch_deg (default 0), camera.fovx_deg / fovy_deg / width_px /
+height_px and velocity.v_max_mps / w_max_radps. The built-in robots (`ROBOTS`) are the
+files in mjxvine/worlds/data/robots/. A bad file raises `RobotFileError`, one line naming
+the file and its fault (`mjxvine.config.robot_spec` turns it into a `ConfigError`).
+
+Only yaml and the standard library are imported: `mjxvine.config` validates with it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import re
+from pathlib import Path
+
+import yaml
+
+BUILTIN_DIR = Path(__file__).resolve().parent / "worlds" / "data" / "robots"
+SUFFIXES = (".yaml", ".yml")
+
+
+class RobotFileError(ValueError):
+  """A robot file (or robot name) is invalid; the message names the file and the fault."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotSpec:
+  """A robot's fixed geometry and masses (docs/design.md, Robots): metres, kg, degrees.
+
+  The optional camera and velocity values (None: the config's) are laid over the config
+  by `mjxvine.config.load_config` (`config_values`)."""
+  name: str
+  length: float        # footprint L (x)
+  width: float         # footprint W (y)
+  height: float        # H, ground to top
+  chassis_mass: float
+  wheel_mass: float
+  wheel_radius: float
+  track: float         # distance between left and right wheel centres
+  wheelbase: float     # distance between front and rear axles
+  camera_ahead: float  # camera optical centre ahead of the base centre
+  camera_height: float  # camera optical centre above the ground
+  track_slip: float    # skid-steer expanded-track factor chi: w = (v_r - v_l) / (chi * track)
+  camera_pitch_deg: float = 0.0  # about the body's y axis; positive looks down
+  camera_fovx_deg: float | None = None
+  camera_fovy_deg: float | None = None
+  camera_width_px: int | None = None
+  camera_height_px: int | None = None
+  v_max: float | None = None  # m/s
+  w_max: float | None = None  # rad/s
+
+  @property
+  def mass(self) -> float:
+    return self.chassis_mass + 4 * self.wheel_mass
+
+
+# group -> key -> (RobotSpec field, lo, hi, required); ranges are physical sanity bounds.
+SCHEMA = {
+    "body": {"length_m": ("length", 0.05, 5.0, True), "width_m": ("width", 0.05, 5.0, True),
+             "height_m": ("height", 0.05, 5.0, True),
+             "chassis_mass_kg": ("chassis_mass", 0.1, 2000.0, True)},
+    "wheels": {"radius_m": ("wheel_radius", 0.05, 5.0, True),
+               "mass_kg": ("wheel_mass", 0.1, 2000.0, True),
+               "track_m": ("track", 0.05, 5.0, True),
+               "wheelbase_m": ("wheelbase", 0.05, 5.0, True),
+               "track_slip": ("track_slip", 1.0, 10.0, True)},
+    "camera": {"ahead_m": ("camera_ahead", -5.0, 5.0, True),
+               "height_m": ("camera_height", 0.05, 5.0, True),
+               "pitch_deg": ("camera_pitch_deg", -45.0, 45.0, False),
+               "fovx_deg": ("camera_fovx_deg", 1.0, 170.0, False),
+               "fovy_deg": ("camera_fovy_deg", 1.0, 170.0, False),
+               "width_px": ("camera_width_px", 1, 1024, False),
+               "height_px": ("camera_height_px", 1, 1024, False)},
+    "velocity": {"v_max_mps": ("v_max", 0.01, 5.0, False),
+                 "w_max_radps": ("w_max", 0.01, 10.0, False)},
+}
+# RobotSpec field -> the config key it sets when the file gives it (RobotConfig's rule)
+CONFIG_KEYS = {"camera_fovx_deg": "camera.fovx_deg", "camera_fovy_deg": "camera.fovy_deg",
+               "camera_width_px": "camera.width", "camera_height_px": "camera.height",
+               "v_max": "env.v_max", "w_max": "env.w_max"}
+UNITS = {"_m": " m", "_kg": " kg", "_deg": " deg", "_px": " px", "_mps": " m/s",
+         "_radps": " rad/s"}
+NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def _unknown(shown: str, key: str, known) -> RobotFileError:
+  close = difflib.get_close_matches(key.rsplit(".", 1)[-1], known, n=2, cutoff=0.6)
+  hint = f"; did you mean {' or '.join(close)}?" if close else f" (known: {', '.join(known)})"
+  return RobotFileError(f"{shown}: unknown key {key}{hint}")
+
+
+def _number(shown: str, key: str, value, lo, hi):
+  """`value` as a float (an int for *_px) in [lo, hi], or the one-line error."""
+  if isinstance(value, str):  # YAML 1.1 reads 1e-3 (no dot) as a string
+    try:
+      value = float(value)
+    except ValueError:
+      pass
+  if isinstance(value, bool) or not isinstance(value, (int, float)):
+    raise RobotFileError(f"{shown}: {key} = {value!r}: expected a number")
+  if not math.isfinite(value):
+    raise RobotFileError(f"{shown}: {key} = {value!r}: expected a finite number")
+  if isinstance(lo, int):
+    if not float(value).is_integer():
+      raise RobotFileError(f"{shown}: {key} = {value!r}: expected a whole number of pixels")
+    value = int(value)
+  else:
+    value = float(value)
+  if not lo <= value <= hi:
+    unit = next((u for s, u in UNITS.items() if key.endswith(s)), "")
+    raise RobotFileError(f"{shown}: {key} = {value:g}: must be in [{lo:g}, {hi:g}]{unit}")
+  return value
+
+
+def _check_fit(shown: str, s: RobotSpec) -> None:
+  """Cross-field sanity: the wheels under the body, the camera on it, above the axle."""
+  checks = (
+      (s.height > s.wheel_radius, f"body.height_m = {s.height:g}: must be above "
+       f"wheels.radius_m = {s.wheel_radius:g} (the body's top above the axle)"),
+      (s.wheel_radius <= s.width, f"wheels.radius_m = {s.wheel_radius:g}: must be at "
+       f"most body.width_m = {s.width:g}"),
+      (s.track <= s.width, f"wheels.track_m = {s.track:g}: wider than body.width_m = "
+       f"{s.width:g} (the wheels must lie within the footprint)"),
+      (s.wheelbase + 2 * s.wheel_radius <= s.length, f"wheels.wheelbase_m = "
+       f"{s.wheelbase:g}: the wheels (radius {s.wheel_radius:g}) reach beyond "
+       f"body.length_m = {s.length:g}; need wheelbase_m + 2 radius_m <= length_m"),
+      (s.camera_height > s.wheel_radius, f"camera.height_m = {s.camera_height:g}: must "
+       f"be above the wheel axle (wheels.radius_m = {s.wheel_radius:g})"),
+      (abs(s.camera_ahead) <= s.length / 2, f"camera.ahead_m = {s.camera_ahead:g}: the "
+       f"camera must be on the body, |ahead_m| <= body.length_m / 2 = {s.length / 2:g}"),
+  )
+  for ok, message in checks:
+    if not ok:
+      raise RobotFileError(f"{shown}: {message}")
+
+
+def parse_robot(doc, shown: str) -> RobotSpec:
+  """The `RobotSpec` of a robot file's loaded YAML `doc`; `shown` names the file in errors."""
+  if not isinstance(doc, dict):
+    got = "nothing (an empty file)" if doc is None else f"a {type(doc).__name__}"
+    raise RobotFileError(f"{shown}: expected a mapping (name:, body:, wheels:, camera:), "
+                         f"got {got}")
+  top = ("name", *SCHEMA)
+  for key in doc:
+    if key not in top:
+      raise _unknown(shown, str(key), top)
+  name = doc.get("name")
+  if name is None:
+    raise RobotFileError(f"{shown}: missing key name")
+  if not isinstance(name, str) or not NAME.match(name):
+    raise RobotFileError(f"{shown}: name = {name!r}: expected a word of letters, digits, "
+                         "'_', '.' or '-' (at most 64 characters)")
+  fields = {"name": name}
+  for group, keys in SCHEMA.items():
+    values = doc.get(group)
+    if values is None:
+      values = {}
+    if not isinstance(values, dict):
+      raise RobotFileError(f"{shown}: {group}: expected a mapping of keys "
+                           f"({', '.join(keys)}), got a {type(values).__name__}")
+    for key in values:
+      if key not in keys:
+        raise _unknown(shown, f"{group}.{key}", keys)
+    for key, (field, lo, hi, required) in keys.items():
+      if key in values:
+        fields[field] = _number(shown, f"{group}.{key}", values[key], lo, hi)
+      elif required:
+        raise RobotFileError(f"{shown}: missing key {group}.{key}")
+  spec = RobotSpec(**fields)
+  _check_fit(shown, spec)
+  return spec
+
+
+def load_yaml(path: Path, shown: str, error: type[Exception], what: str):
+  """The YAML document in the file `path`; `error`, one line naming `shown`, when it
+  cannot be read or is not YAML text (robot files here, config files in `config`)."""
+  try:
+    return yaml.safe_load(path.read_text(encoding="utf-8"))
+  except UnicodeDecodeError as e:
+    raise error(f"{shown}: not a text file (byte {e.start} is not UTF-8); a {what} is "
+                "YAML text") from None
+  except OSError as e:
+    raise error(f"{shown}: cannot be read ({e.strerror})") from None
+  except yaml.YAMLError as e:
+    raise error(f"{shown}: not valid YAML ({' '.join(str(e).split())})") from None
+
+
+def read_robot_file(path: str | Path, shown: str | None = None) -> RobotSpec:
+  """The `RobotSpec` of the robot file at `path` (`RobotFileError` if it is bad)."""
+  path, shown = Path(path), shown or str(path)
+  if not path.is_file():
+    raise RobotFileError(f"robot file not found: {shown}")
+  doc = load_yaml(path, shown, RobotFileError, "robot file")
+  return parse_robot(doc, shown)
+
+
+ROBOTS = {p.stem: read_robot_file(p) for p in sorted(BUILTIN_DIR.glob("*.yaml"))}
+
+
+_READ: dict[tuple[str, int], RobotSpec] = {}  # (resolved path, mtime ns) -> its robot
+
+
+def robot_spec(name_or_path: str | Path) -> RobotSpec:
+  """The robot a built-in name (`ROBOTS`) or a robot file path (.yaml / .yml, relative to
+  the working directory) names; files are read once per resolved path (again when their
+  modification time changes). `RobotFileError` (one line naming the file) if bad."""
+  text = str(name_or_path)
+  if text in ROBOTS:
+    return ROBOTS[text]
+  path = Path(text).expanduser()
+  if path.suffix.lower() not in SUFFIXES:
+    raise RobotFileError(f"unknown robot {text!r}: a built-in name ({', '.join(ROBOTS)}) "
+                         "or a robot file FILE.yaml")
+  if not path.is_file():
+    raise RobotFileError(f"robot file not found: {text}")
+  resolved = path.resolve()
+  key = (str(resolved), resolved.stat().st_mtime_ns)
+  if key not in _READ:
+    _READ[key] = read_robot_file(resolved, text)
+  return _READ[key]
+
+
+def config_values(robot: RobotSpec) -> dict[str, float | int]:
+  """{"camera.width": 64, "env.v_max": 1.0, ...}: the config keys the robot file sets
+  (its optional camera and velocity values)."""
+  return {key: getattr(robot, field) for field, key in CONFIG_KEYS.items()
+          if getattr(robot, field) is not None}
+
+
+__all__ = ["RobotSpec", "RobotFileError", "ROBOTS", "SCHEMA", "robot_spec", "read_robot_file",
+           "parse_robot", "config_values"]
