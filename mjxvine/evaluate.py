@@ -41,7 +41,7 @@ from mjxvine.evaluation.rollout import all_lanes, parse_lanes, run_protocol
 from mjxvine.evaluation.video import RenderError, write_videos
 from mjxvine.rundir.checkpoints import WHICH
 from mjxvine.rundir.settings import policy_config
-from mjxvine.worlds import make_world, robot_spec
+from mjxvine.worlds import world_of
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -181,8 +181,7 @@ def run(args) -> int:
     except ConfigError as e:
       print(f"config error: {e}", file=sys.stderr)
       return 2
-    world = make_world(args.world or str(cfg.world.test_seed), cfg.world,
-                       robot_width_m=robot_spec(cfg.robot.name).width)
+    world = world_of(args.world or str(cfg.world.test_seed), cfg)
     if args.video_lanes:  # a bad lane is one line before anything is built
       parse_lanes(args.video_lanes, len(world.lanes))
     if args.video or args.gif:  # before the rollout: no GL, no ffmpeg is one line

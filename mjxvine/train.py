@@ -184,12 +184,11 @@ def main(argv=None) -> int:
 def check_train_files(p: argparse.ArgumentParser, cfg: Config) -> None:
   """Reads `world.train_files` once before anything is made or compiled: a missing or bad
   vineyard file is one line (`p.error`, exit 2)."""
-  from mjxvine.worlds import make_world, robot_spec
+  from mjxvine.worlds import world_of
   from mjxvine.worlds.store import train_files
   for path in train_files(cfg.world):
     try:
-      make_world(path, cfg.world, flag="world.train_files",
-                 robot_width_m=robot_spec(cfg.robot.name).width)
+      world_of(path, cfg, flag="world.train_files")
     except (ValueError, FileNotFoundError) as e:  # WorldFileError is a ValueError
       p.error(str(e))
 

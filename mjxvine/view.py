@@ -36,12 +36,12 @@ def has_display() -> bool:
 def _world(spec: str, cfg):
   """--world: "test" (the config's test world), "train" (its first training world), a
   test-world seed, a world .json file or a vineyard file (.geojson, .csv)."""
-  from mjxvine.worlds import generate_world, make_world, robot_spec
+  from mjxvine.worlds import generate_world, make_world, world_of
   if spec == "test":
     return make_world(str(cfg.world.test_seed), cfg.world)
   if spec == "train":
     return generate_world("train", cfg.world.train_seed, cfg.world)
-  return make_world(spec, cfg.world, robot_width_m=robot_spec(cfg.robot.name).width)
+  return world_of(spec, cfg)
 
 
 def parser() -> argparse.ArgumentParser:

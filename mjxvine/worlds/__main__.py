@@ -26,7 +26,7 @@ from mjxvine.deploy import PolicyFormatError, read_policy_file
 from mjxvine.worlds.build import build_spec, terrain_height
 from mjxvine.worlds.plot import save_map
 from mjxvine.worlds.robots import robot_spec
-from mjxvine.worlds.store import make_world
+from mjxvine.worlds.store import make_world, world_of
 
 SETTLE_S = 1.0
 
@@ -141,9 +141,7 @@ def main(argv=None) -> int:
   cfg = config_from_args(args, extra)
   try:
     if args.source:
-      world = make_world(args.source, cfg.world, flag="--from",
-                         robot_width_m=robot_spec(cfg.robot.name).width,
-                         plant_spacing_m=args.plant_spacing)
+      world = world_of(args.source, cfg, flag="--from", plant_spacing_m=args.plant_spacing)
     else:
       world = make_world(str(args.seed), cfg.world, kind=args.kind, flag="--seed")
     out = check_output(args.out, "--out", directory=True)  # after a bad file: nothing made

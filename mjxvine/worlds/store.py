@@ -68,6 +68,11 @@ def _is_geojson(path: Path) -> bool:
   return '"type"' in head and '"plant_xy"' not in head
 
 
+def world_of(spec: str, cfg: Config, **kw) -> Vineyard:
+  """`make_world` for a whole config: vineyard files' lanes checked for its robot."""
+  return make_world(spec, cfg.world, robot_width_m=robot_spec(cfg.robot.name).width, **kw)
+
+
 def train_files(cfg: WorldConfig) -> list[str]:
   """The vineyard files of `world.train_files` (comma-separated)."""
   return [f.strip() for f in cfg.train_files.split(",") if f.strip()]
@@ -82,8 +87,7 @@ def pool_worlds(cfg: Config) -> list[Vineyard]:
   files = train_files(cfg.world)
   if not files:
     return worlds
-  worlds += [make_world(f, cfg.world, flag="world.train_files",
-                        robot_width_m=robot_spec(cfg.robot.name).width) for f in files]
+  worlds += [world_of(f, cfg, flag="world.train_files") for f in files]
   return common_terrain_grid(worlds, cfg.world.terrain_cell_m)
 
 
