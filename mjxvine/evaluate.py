@@ -93,7 +93,7 @@ def parser() -> argparse.ArgumentParser:
                            "with EGL or OSMesa)")
   v.add_argument("--video", action="store_true",
                  help="an MP4 of the first run of each lane-direction (or --video-lanes)")
-  v.add_argument("--gif", action="store_true", help="a GIF of each (half the frames, 320 px "
+  v.add_argument("--gif", action="store_true", help="a GIF of each (every 4th frame, 320 px "
                  "wide: for a README); with --video as well as the MP4")
   v.add_argument("--video-lanes", default=None, metavar="1F,4R",
                  help="the lane-directions to film (default: all of them)")
