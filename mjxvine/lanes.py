@@ -54,8 +54,8 @@ class LaneTable:
     self.width_m = jp.asarray(width, jp.float32)
     lengths = {l.centerline[-1, 0] - l.centerline[0, 0] for w in worlds for l in w.lanes}
     self.uniform = bool(np.all(samples == k)) and len({round(x, 9) for x in lengths}) == 1
-    # generated pools: the row length of the worlds, as every pose was drawn before
-    self.static_length_m = worlds[0].length_m if self.uniform else None
+    # generated pools: their row length (a lane's x extent is exactly it)
+    self.static_length_m = float(length.flat[0]) if self.uniform else None
     self.static_samples = k if self.uniform else None
     limits = np.vectorize(lambda x: lane_steps(max_steps, x))(length).astype(np.int32)
     self.max_steps = jp.asarray(limits)

@@ -160,3 +160,14 @@ def test_worlds_of_one_batch_keep_their_heights(tmp_path):
     dist = mujoco.mj_ray(model, data, np.array([xy[0], xy[1], 50.0]), np.array([0, 0, -1.0]),
                          np.array([1, 0, 0, 0, 0, 0], np.uint8), 1, -1, geomid)
     assert 50.0 - dist == pytest.approx(float(terrain_height(world, *xy)), abs=2e-3)
+
+
+def test_lanes_of_one_length_but_staggered_starts(cfg):
+  """A slanted block whose lanes are equally long but start at different x: the static
+  path of the lane table takes the lanes' own extent, not the block's length."""
+  from mjxvine.env import LaneTable
+  rows = [np.stack([np.arange(30.0) + 2.0 * j, np.full(30, 2.4 * j)], -1) for j in range(3)]
+  block = vineyard_from_rows(rows, cfg.world, robot_width_m=0.43, heading_rad=0.0)
+  lanes = LaneTable([block])
+  assert lanes.uniform and block.length_m == pytest.approx(29.0)  # lane 2 ends at x = 29
+  assert lanes.static_length_m == pytest.approx(27.0)  # lanes: x 0..27 and 2..29

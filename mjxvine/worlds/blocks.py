@@ -129,10 +129,10 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
 
   heading_rad: the rows' direction in that frame (default `block_heading`); slope_pct,
   cross_slope_pct: the terrain's gradient (%) along and across the rows, on top of the
-  config's random bumps; sizes: optional per-plant arrays over the rows' plants in order
-  row_sizes: optional per-row plant sizes (m), a dict per row with any of
-  "trunk_height_m", "canopy_width_m", "canopy_top_m"; what a row does not give is drawn
-  per plant from the config's ranges with `seed`. The frame (origin, heading, offset) is kept in `Vineyard.frame`."""
+  config's random bumps; row_sizes: optional per-row plant sizes (m), a dict per row with
+  any of "trunk_height_m", "canopy_width_m", "canopy_top_m"; what a row does not give is
+  drawn per plant from the config's ranges with `seed`. The frame (origin, heading,
+  offset) is kept in `Vineyard.frame`."""
   labels = list(labels or [f"row {j + 1}" for j in range(len(rows))])
   rows = [np.asarray(r, np.float64).reshape(-1, 2) for r in rows]
   if len(rows) < 2:
