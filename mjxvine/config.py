@@ -188,6 +188,10 @@ class SACConfig:
                               "decays linearly with env steps to this fraction of "
                               "learning_rate at train.total_env_steps (1.0: constant)")
   gamma: float = _f(0.99, 0.0, 1.0)
+  n_step: int = _f(1, 1, 64, doc="the critics learn from n-step returns: the discounted "
+                   "rewards of up to n consecutive steps of an episode, then the bootstrapped "
+                   "value (uncorrected for the policy's change, as in DrQ-v2; 1: the paper's "
+                   "one-step target)")
   tau: float = _f(5e-3, 0.0, 1.0)
   alpha: float = _f(0.2, 0.0, 100.0, doc="entropy temperature (initial value if auto_alpha)")
   auto_alpha: bool = _f(False)
@@ -239,6 +243,15 @@ class SACConfig:
                       "(mjxvine.native, x86-64 Linux with a C++ compiler); shift = "
                       "XLA's convs but the first as a sum of slices; auto = native on the "
                       "CPU where it builds, else shift, and xla elsewhere")
+  image_shift_px: int = _f(0, 0, 16, doc="every sampled depth image (obs and next_obs, "
+                           "apart) is moved by a random whole-pixel offset of up to this "
+                           "many pixels along each axis, its edge values repeated into the "
+                           "border (DrQ's random shift): the conv towers learn from views a "
+                           "few pixels apart; acting and evaluation see the image as it is "
+                           "(0: off)")
+  critic_layer_norm: bool = _f(False, doc="LayerNorm before each hidden ReLU of the "
+                               "critics (the actor, and so the exported policy, unchanged): "
+                               "steadier Q targets early in training; not the paper's")
   reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
                                     "features of obs from the critic loss and the critics "
                                     "as they were before this step's update (as brax's SAC "
@@ -411,6 +424,10 @@ def _check_cross_fields(cfg: Config) -> None:
   if cfg.train.video and cfg.eval.runs_after_train < 1:
     raise ConfigError("train.video = true: films the closing test-world runs, which need "
                       "eval.runs_after_train >= 1 (got 0)")
+  rows = cfg.sac.buffer_size // cfg.env.num_envs
+  if cfg.sac.n_step >= rows:
+    raise ConfigError(f"sac.n_step = {cfg.sac.n_step}: must be below the steps per env "
+                      f"that the replay holds (sac.buffer_size // env.num_envs = {rows})")
   if cfg.sac.log_std_min >= cfg.sac.log_std_max:
     raise ConfigError(f"sac.log_std_min = {cfg.sac.log_std_min}: must be < sac.log_std_max")
   for key in ("mirror_augment", "mirror_average"):

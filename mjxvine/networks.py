@@ -155,13 +155,24 @@ class Critic(nn.Module):
   dtype: Any = jnp.float32
   conv_impl: str = "xla"
 
+  layer_norm: bool = False  # LayerNorm before each hidden ReLU (`sac.critic_layer_norm`)
+
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
     x = _torso_input(obs, self.conv_features, self.depth_scale, extra=(action,),
                      dtype=self.dtype, conv_impl=self.conv_impl)
-    for i, h in enumerate(self.hidden):
-      x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
-    return nn.Dense(1, name="q")(x.astype(jnp.float32))[..., 0]
+    return _q_layers(x, self.hidden, self.dtype, self.layer_norm)
+
+
+def _q_layers(x: jax.Array, hidden: Sequence[int], dtype: Any, layer_norm: bool) -> jax.Array:
+  """A critic's layers after its torso input, called inside a module's `nn.compact` (so
+  that `Critic` and `CriticHead` name their params alike): q (...,)."""
+  for i, h in enumerate(hidden):
+    x = nn.Dense(h, dtype=dtype, name=f"dense{i}")(x)
+    if layer_norm:
+      x = nn.LayerNorm(dtype=dtype, name=f"norm{i}")(x)
+    x = nn.relu(x)
+  return nn.Dense(1, name="q")(x.astype(jnp.float32))[..., 0]
 
 
 class CriticHead(nn.Module):
@@ -170,12 +181,11 @@ class CriticHead(nn.Module):
   `twin_critic_features` and `twin_critic_heads` split one critic evaluation in two."""
   hidden: Sequence[int] = (256, 256)
   dtype: Any = jnp.float32
+  layer_norm: bool = False
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    for i, h in enumerate(self.hidden):
-      x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
-    return nn.Dense(1, name="q")(x.astype(jnp.float32))[..., 0]
+    return _q_layers(x, self.hidden, self.dtype, self.layer_norm)
 
 
 class TwinCritic(nn.Module):
@@ -190,12 +200,13 @@ class TwinCritic(nn.Module):
   num: int = 2
   dtype: Any = jnp.float32
   conv_impl: str = "xla"
+  layer_norm: bool = False
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
     return jnp.stack([
         Critic(self.hidden, self.conv_features, self.depth_scale, self.dtype, self.conv_impl,
-               name=f"critic{i}")(obs, action)
+               self.layer_norm, name=f"critic{i}")(obs, action)
         for i in range(self.num)])
 
 
@@ -213,7 +224,7 @@ def twin_critic_heads(critic: "TwinCritic", params: Any, features: list[jax.Arra
                       action: jax.Array) -> jax.Array:
   """q (num, ...) from `twin_critic_features`' output: with the features of the same
   params, exactly `critic.apply({"params": params}, obs, action)`."""
-  head = CriticHead(critic.hidden, critic.dtype)
+  head = CriticHead(critic.hidden, critic.dtype, critic.layer_norm)
   state = [obs["state"]] if isinstance(obs, dict) else []
   return jnp.stack([
       head.apply({"params": {k: v for k, v in params[f"critic{i}"].items() if k != "tower"}},
@@ -232,13 +243,16 @@ class SACNetworks(NamedTuple):
 def make_networks(action_low: Sequence[float], action_high: Sequence[float], hidden: int = 256,
                   conv_features: int = 32, depth_scale: float = 1.0,
                   log_std_min: float = -20.0, log_std_max: float = 2.0,
-                  compute_dtype: str = "float32", conv_impl: str = "xla") -> SACNetworks:
+                  compute_dtype: str = "float32", conv_impl: str = "xla",
+                  critic_layer_norm: bool = False) -> SACNetworks:
   """Builds the actor and twin critic for an action box [action_low, action_high].
 
   `depth_scale` multiplies the depth (metres) before the first conv; the paper's
   networks are `hidden=256, conv_features=32` (two hidden layers). `compute_dtype`: "float32"
   or "bfloat16" (mixed precision, see the module docstring). `conv_impl`: how the conv
   towers compute their convolutions (`CONV_IMPLS`; the same parameters either way).
+  `critic_layer_norm`: LayerNorm before each hidden ReLU of the critics (not the paper's:
+  it adds 4 * hidden parameters per critic).
   """
   dtype = jnp.dtype(compute_dtype)
   low = jnp.asarray(action_low, jnp.float32)
@@ -248,7 +262,8 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
   hs = (hidden, hidden)
   actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, log_std_min, log_std_max,
                 dtype, conv_impl)
-  critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype, conv_impl=conv_impl)
+  critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype, conv_impl=conv_impl,
+                      layer_norm=critic_layer_norm)
   return SACNetworks(actor, critic, low, high)
 
 
@@ -268,7 +283,8 @@ def make_networks_from_config(cfg, conv_impl: str = "xla") -> SACNetworks:
       *action_box(cfg), hidden=cfg.sac.hidden,
       conv_features=cfg.sac.conv_features, depth_scale=depth_input_scale(cfg),
       log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
-      compute_dtype=cfg.sac.compute_dtype, conv_impl=conv_impl)
+      compute_dtype=cfg.sac.compute_dtype, conv_impl=conv_impl,
+      critic_layer_norm=cfg.sac.critic_layer_norm)
 
 
 def init_params(nets: SACNetworks, key: jax.Array, obs: Obs) -> tuple[Any, Any]:

@@ -39,6 +39,8 @@ class Transition(NamedTuple):
   ended by the time limit only; weight (B,) or None: per-sample weight of the critic
   loss (0.0 for a transition to learn nothing from: a physics reset, whose successor is
   the restored old state, or a truncation whose final frame the buffer evicted).
+  discount (B,) or None: the factor of the bootstrapped value, gamma^k for an n-step
+  transition of k steps (`sample` with n_step > 1); None: the learner's gamma.
   """
   obs: Obs
   action: jax.Array
@@ -47,6 +49,7 @@ class Transition(NamedTuple):
   truncated: jax.Array
   next_obs: Obs
   weight: jax.Array | None = None
+  discount: jax.Array | None = None
 
 
 class ReplayBuffer(flax.struct.PyTreeNode):
@@ -189,33 +192,52 @@ def num_sampleable(buffer: ReplayBuffer) -> jax.Array:
   return (jnp.minimum(buffer.rows_written, buffer.num_rows) - 1).clip(0) * buffer.num_envs
 
 
-def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
+def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int, n_step: int = 1,
+           gamma: float = 0.99) -> Transition:
   """Draws `batch_size` transitions uniformly (with replacement), depth dequantised.
 
-  Needs at least 2 inserts (the newest row waits for its successor frames).
+  n_step > 1 (static): each is an n-step transition (`sac.n_step`): reward = sum_k
+  gamma^k r_{t+k} over the steps up to the first end of the episode within n,
+  next_obs, terminal and truncated those of that last step, and discount (B,) =
+  gamma^(steps taken), the factor of the bootstrapped value (n = 1: discount None, the
+  learner's gamma). A transition of weight 0 inside the window gives the sample weight 0.
+  Needs at least n + 1 inserts (the newest row waits for its successor frames).
   """
   s, n = buffer.num_rows, buffer.num_envs
   k_row, k_env = jax.random.split(key)
   w = buffer.rows_written
-  count = jnp.maximum(jnp.minimum(w, s) - 1, 1)
+  count = jnp.maximum(jnp.minimum(w, s) - n_step, 1)
   oldest = jnp.where(w > s, w % s, 0)
   r = (oldest + jax.random.randint(k_row, (batch_size,), 0, count)) % s
   e = jax.random.randint(k_env, (batch_size,), 0, n)
-  r1 = (r + 1) % s
   get = lambda x: x[r, e]
-  terminal, truncated = get(buffer.terminal), get(buffer.truncated)
-  weight = get(buffer.valid).astype(jnp.float32)
+  reward, weight = get(buffer.reward), get(buffer.valid).astype(jnp.float32)
+  last, discount = r, None
+  if n_step > 1:
+    rows = (r[:, None] + jnp.arange(n_step)) % s  # (B, n)
+    window = lambda x: x[rows, e[:, None]]
+    done = window(buffer.terminal) | window(buffer.truncated)
+    alive = (jnp.cumsum(done, axis=1) - done) == 0  # no end of episode before step k
+    steps = jnp.sum(alive, axis=1)  # 1 .. n
+    reward = jnp.sum(jnp.where(alive, window(buffer.reward), 0.0)
+                     * gamma ** jnp.arange(n_step, dtype=jnp.float32), axis=1)
+    weight = jnp.all(jnp.where(alive, window(buffer.valid), True), axis=1).astype(jnp.float32)
+    last = (r + steps - 1) % s
+    discount = gamma ** steps.astype(jnp.float32)
+  at_last = lambda x: x[last, e]
+  terminal, truncated = at_last(buffer.terminal), at_last(buffer.truncated)
   depth = next_depth = None
   if buffer.depth is not None:
     need = truncated & ~terminal
-    fs = get(buffer.final_slot)
+    fs = at_last(buffer.final_slot)
     side = buffer.final_depth[jnp.maximum(fs, 0)]
-    nd = jnp.where(need[:, None, None, None], side, buffer.depth[r1, e])
+    nd = jnp.where(need[:, None, None, None], side, buffer.depth[(last + 1) % s, e])
     depth = dequantize_depth(get(buffer.depth), buffer.max_depth)
     next_depth = dequantize_depth(nd, buffer.max_depth)
     weight = jnp.where(need & (fs < 0), 0.0, weight)
   return Transition(
       obs=_join_obs(depth, jax.tree.map(get, buffer.rest)),
-      action=get(buffer.action), reward=get(buffer.reward),
+      action=get(buffer.action), reward=reward,
       terminal=terminal.astype(jnp.float32), truncated=truncated.astype(jnp.float32),
-      next_obs=_join_obs(next_depth, jax.tree.map(get, buffer.next_rest)), weight=weight)
+      next_obs=_join_obs(next_depth, jax.tree.map(at_last, buffer.next_rest)), weight=weight,
+      discount=discount)

@@ -67,13 +67,15 @@ def critic_target(nets: nw.SACNetworks, actor_params: Params, target_critic_para
   """Soft TD target y (B,), without gradient.
 
   y = r + gamma * (1 - terminal) * (min_i Q'_i(s', a') - alpha * log pi(a'|s')),
-  a' ~ pi(.|s'). Truncation does not stop bootstrapping.
+  a' ~ pi(.|s'), with batch.discount (gamma^k of an n-step transition) for gamma where
+  the batch has one. Truncation does not stop bootstrapping.
   """
   mean, log_std = nets.actor.apply({"params": actor_params}, batch.next_obs)
   next_a, next_logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
   next_q = nets.critic.apply({"params": target_critic_params}, batch.next_obs, next_a)
   next_v = jnp.min(next_q, axis=0) - alpha * next_logp
-  y = batch.reward + gamma * (1.0 - batch.terminal) * next_v
+  discount = gamma if batch.discount is None else batch.discount  # n-step: gamma^k
+  y = batch.reward + discount * (1.0 - batch.terminal) * next_v
   return jax.lax.stop_gradient(y)
 
 
@@ -241,6 +243,31 @@ def mirror_half(batch: Transition, key: jax.Array, mirror_obs: Callable,
       next_obs=jax.tree.map(pick, batch.next_obs, mirror_obs(batch.next_obs)))
 
 
+def shift_depth(depth: jax.Array, key: jax.Array, pad_px: int) -> jax.Array:
+  """Each image of `depth` (B, H, W, C) moved by its own random whole-pixel offset of at
+  most `pad_px` along each axis, the edge values repeated into the uncovered border
+  (DrQ's random shift: pad by replication, then crop back to H x W)."""
+  b, h, w, c = depth.shape
+  padded = jnp.pad(depth, ((0, 0), (pad_px, pad_px), (pad_px, pad_px), (0, 0)), mode="edge")
+  offsets = jax.random.randint(key, (b, 2), 0, 2 * pad_px + 1)
+  crop = lambda img, o: jax.lax.dynamic_slice(img, (o[0], o[1], 0), (h, w, c))
+  return jax.vmap(crop)(padded, offsets)
+
+
+def shift_images(batch: Transition, key: jax.Array, pad_px: int) -> Transition:
+  """`batch` with obs and next_obs depth images shifted independently (`shift_depth`,
+  `sac.image_shift_px`): the critics and the actor learn from views a few pixels apart,
+  which regularises the conv towers (Kostrikov et al. 2020, DrQ)."""
+  if not isinstance(batch.obs, dict) or "depth" not in batch.obs:
+    raise ValueError("sac.image_shift_px shifts depth images: this env's observations "
+                     "have none")
+  k_obs, k_next = jax.random.split(key)
+  return batch._replace(
+      obs={**batch.obs, "depth": shift_depth(batch.obs["depth"], k_obs, pad_px)},
+      next_obs={**batch.next_obs,
+                "depth": shift_depth(batch.next_obs["depth"], k_next, pad_px)})
+
+
 def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
              shard_batch: Callable = lambda batch: batch,
              mirror: tuple[Callable, Callable] | None = None) -> SAC:
@@ -321,13 +348,15 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
 
   def update_from(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):
     k_sample, k_update = jax.random.split(key)
-    batch = sample(buffer, k_sample, cfg.batch_size)
+    batch = sample(buffer, k_sample, cfg.batch_size, cfg.n_step, cfg.gamma)
     if cfg.mirror_augment:
       # split(k_sample)[1], so that runs without the mirror keep their keys. It is also
       # the key `sample` draws its env indices from (k_env): a reuse, kept because the
       # lanes.yaml results were measured with it (a fresh key, e.g. fold_in, is cleaner)
       _, k_mirror = jax.random.split(k_sample)
       batch = mirror_half(batch, k_mirror, *mirror)
+    if cfg.image_shift_px:
+      batch = shift_images(batch, jax.random.fold_in(k_sample, 1), cfg.image_shift_px)
     return update(state, shard_batch(batch), k_update, lr_scale)
 
   def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):

@@ -5,7 +5,7 @@ that rules for choosing the best checkpoint can be compared without training aga
       [--steps 50000,90000]
 
 For each RUN/eval_policies/env<steps>.npz, one batched rollout of the validation protocol
-that `train.select_worlds` chooses on (`mjxvine.choice.score_policy`): every
+that `train.select_worlds` chooses on (`mjxvine.evaluation.choice.score_policy`): every
 lane-direction of each validation world (test-kind seeds that the test tables never use)
 with `--runs` runs at the config's noise factor, and rows 1F and 4F of the first
 validation world with 3 runs at each `--noise` factor. Besides, the

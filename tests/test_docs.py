@@ -20,6 +20,23 @@ An HTML comment on the line before a block marks it:
 - `<!-- no-run: REASON -->` (python): compiled, and its imports run, but not the rest.
 - `<!-- slow: REASON -->`: the fast check above, and run for real (bash: at smoke size,
   `--set` overrides appended to training) by the `slow` test.
+
+Inline code spans (single backticks) that hold a `python -m mjxvine...` command are
+checked as a bash command is: in the prose of README.md and docs/**/*.md (not CHANGELOG.md,
+which records history), and in the comments of experiments/*.yaml, mjxvine/configs/*.yaml
+and scripts/*.sh (a run of comment lines is read as one paragraph). Prose writes commands
+with placeholders; the rules:
+- the module alone (`python -m mjxvine.choose`) names a command line, which must exist;
+- `...` stands for arguments left out and is dropped: the rest must still parse, so a
+  required flag (`--out`) cannot be left out;
+- `[` `]` around arguments mark them optional: they are checked as if given;
+- `a|b` gives alternatives, each checked (`--set sac.conv_impl=shift|native` is two
+  commands: the text up to the last `=` before the first `|` is shared);
+- upper-case words (`POLICY`, `runs/RUN`, `X,Y,YAW`) are placeholders, parsed as the
+  literal strings they are (a flag that takes a number needs a number);
+- a wrapper before `python` (`/usr/bin/time -v`) is left out.
+Commands written as indented code (4 spaces in markdown, `#   python -m ...` in a comment)
+are checked the same way.
 """
 
 from __future__ import annotations
@@ -29,6 +46,7 @@ import ast
 import contextlib
 import importlib
 import io
+import itertools
 import os
 import re
 import shlex
@@ -220,6 +238,150 @@ def test_bash_block(block):
   assert cmds, f"{block.id}: an empty bash block"
   for env, argv in cmds:
     check_command(env, argv)
+
+
+# --- inline commands in prose and comments ------------------------------------------------
+
+SPAN_DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+COMMENTED = [*sorted((ROOT / "experiments").glob("*.yaml")),
+             *sorted((ROOT / "mjxvine" / "configs").glob("*.yaml")),
+             *sorted((ROOT / "scripts").glob("*.sh"))]
+
+
+@dataclass(frozen=True)
+class Span:
+  path: Path
+  line: int
+  text: str  # whitespace (line breaks too) collapsed to single spaces
+
+  @property
+  def id(self) -> str:
+    return f"{self.path.relative_to(ROOT)}:{self.line}"
+
+
+def markdown_paragraphs(path: Path) -> list[tuple[int, str]]:
+  """(first line, text) of each paragraph of a markdown file's prose: fenced blocks left
+  out, paragraphs split at blank lines and list items."""
+  out, para, start, fenced = [], [], 0, False
+  for i, line in enumerate(path.read_text().splitlines(), 1):
+    fence = line.startswith("```")
+    fenced ^= fence
+    if fence or fenced or not line.strip() or re.match(r"^\s*(?:[-*]|\d+\.)\s", line):
+      if para:
+        out.append((start, "\n".join(para)))
+      para = []
+      if fence or fenced or not line.strip():
+        continue
+    if not para:
+      start = i
+    para.append(line)
+  if para:
+    out.append((start, "\n".join(para)))
+  return out
+
+
+def comment_paragraphs(path: Path) -> list[tuple[int, str]]:
+  """(first line, text) of each run of consecutive comment lines of a YAML or shell file
+  (whole-line or trailing `# ...` comments; not a `#!` line)."""
+  out, para, start = [], [], 0
+  for i, line in enumerate(path.read_text().splitlines(), 1):
+    m = None if line.startswith("#!") else re.search(r"(?:^|\s)#\s?(.*)$", line)
+    if m:
+      if not para:
+        start = i
+      para.append(m.group(1))
+    elif para:
+      out.append((start, "\n".join(para)))
+      para = []
+  if para:
+    out.append((start, "\n".join(para)))
+  return out
+
+
+def code_spans(path: Path, paragraphs: list[tuple[int, str]]) -> list[Span]:
+  """The inline code spans of `paragraphs`, each at the line where it starts."""
+  return [Span(path, start + text[:m.start()].count("\n"), " ".join(m.group(1).split()))
+          for start, text in paragraphs for m in re.finditer(r"`([^`]+)`", text)]
+
+
+def indented_commands(path: Path) -> list[Span]:
+  """Commands written as indented code: a markdown line indented by 4 spaces (after a
+  blank line or another such line, outside fences), or a comment line whose text is
+  indented (`#   python -m ...`); a line ending in a backslash continues on the next."""
+  out, lines, fenced, prev_blank, block = [], path.read_text().splitlines(), False, True, []
+  comments = path.suffix != ".md"
+  for i, line in enumerate(lines + [""], 1):
+    fenced ^= line.startswith("```")
+    if comments:
+      m = re.search(r"(?:^|\s)#(\s{2,}\S.*)$", line)
+      code = m.group(1).strip() if m else None
+    else:
+      code = line.strip() if (not fenced and re.match(r"^ {4,}\S", line)
+                              and (prev_blank or block)) else None
+    if code is not None and (block or "python -m mjxvine" in code) and "`" not in code:
+      block.append((i, code))
+      if code.endswith("\\"):
+        continue
+    if block:
+      out.append(Span(path, block[0][0], " ".join(c.rstrip("\\").strip() for _, c in block)))
+      block = []
+    prev_blank = not line.strip()
+  return out
+
+
+SPANS = [s for f in SPAN_DOCS for s in code_spans(f, markdown_paragraphs(f))] + \
+        [s for f in COMMENTED for s in code_spans(f, comment_paragraphs(f))]
+COMMAND_SPANS = [s for s in SPANS + [c for f in SPAN_DOCS + COMMENTED
+                                     for c in indented_commands(f)]
+                 if "python -m mjxvine" in s.text]
+
+
+def _alternatives(token: str) -> list[str]:
+  """`a|b` -> [a, b]; `key=a|b` -> [key=a, key=b]."""
+  if "|" not in token:
+    return [token]
+  first, *rest = token.split("|")
+  shared = first[:first.rfind("=") + 1]
+  return [first, *(shared + r for r in rest)]
+
+
+def span_commands(text: str) -> list[tuple[dict, list[str]]]:
+  """The commands an inline span stands for, by the rules of the module docstring (none
+  for the module alone, which must be a command line)."""
+  text = re.sub(r"(?<!\S)\[|\](?!\S)", " ", text)
+  out = []
+  for env, argv in commands(text):
+    argv = [a for a in argv if a != "..."]
+    argv = argv[argv.index("python"):] if "python" in argv else argv  # a wrapper left out
+    if argv[:2] == ["python", "-m"] and len(argv) == 3:
+      assert argv[2].removeprefix("mjxvine.") in CLIS, f"{argv[2]}: not a command line"
+      continue
+    out += [(env, list(a)) for a in itertools.product(*map(_alternatives, argv))]
+  return out
+
+
+@pytest.mark.parametrize("span", COMMAND_SPANS, ids=lambda s: s.id)
+def test_inline_command(span):
+  for env, argv in span_commands(span.text):
+    try:
+      check_command(env, argv)
+    except AssertionError as e:
+      raise AssertionError(f"{span.id}: `{span.text}`: {e}") from None
+
+
+def test_inline_commands_are_found():
+  """The collection sees the commands of prose and of config comments, a span that runs
+  over a line break included (README's GIF command), and expands the placeholders."""
+  assert len(COMMAND_SPANS) >= 50
+  assert any(s.path.suffix == ".yaml" for s in COMMAND_SPANS)
+  assert any(s.text.startswith("/usr/bin/time") for s in COMMAND_SPANS)
+  assert any(s.path.name == "README.md" and "--gif" in s.text and s.text.endswith("out/gif")
+             for s in COMMAND_SPANS)
+  assert [a for _, a in span_commands("python -m mjxvine.view ... [--world test|SEED]")] == [
+      ["python", "-m", "mjxvine.view", "--world", "test"],
+      ["python", "-m", "mjxvine.view", "--world", "SEED"]]
+  assert [a[-1] for _, a in span_commands("python -m mjxvine.train --set a.b=c|d")] == [
+      "a.b=c", "a.b=d"]
 
 
 # --- python -----------------------------------------------------------------------------

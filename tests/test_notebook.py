@@ -1,6 +1,9 @@
-"""experiments/sweep.ipynb runs top to bottom (nbclient) on a tiny setting: 2 learning
-rates x 2 seeds trained at once, learning curves drawn, the final table printed."""
+"""experiments/sweep.ipynb runs top to bottom (nbclient) as it is shipped, its own
+parameters cell unchanged, in an empty folder (its CONFIG, `experiments/default.yaml`, is
+then the packaged copy): every member trained at once, the learning curves drawn, the
+final table printed with one row per learning rate."""
 
+import math
 from pathlib import Path
 
 import pytest
@@ -11,29 +14,25 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
 ROOT = Path(__file__).resolve().parent.parent
-TINY = """CONFIG = "experiments/smoke.yaml"
-OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=2", "env.max_steps=20",
-             "sac.batch_size=16", "sac.buffer_size=256", "sac.warmup_steps=20",
-             "sac.hidden=16", "sac.conv_features=4", "train.iters_per_chunk=10",
-             "world.pool_size=1", "world.train_length_m=6", "train.total_env_steps=80"]
-SEEDS = 2
-LEARNING_RATES = [1e-3, 3e-3]
-RUN_DIR = {run_dir!r}
-"""
 
 
-def test_sweep_notebook_runs_top_to_bottom(tmp_path):
+def test_sweep_notebook_runs_as_shipped(tmp_path):
+  from mjxvine.config import load_config
   nb = nbformat.read(ROOT / "experiments" / "sweep.ipynb", as_version=4)
   params = [c for c in nb.cells if "parameters" in c.metadata.get("tags", [])]
   assert len(params) == 1
-  params[0].source = TINY.format(run_dir=str(tmp_path / "sweep"))
+  p = {}
+  exec(params[0].source, p)  # the values the notebook runs with, to check its output
   nbclient.NotebookClient(nb, timeout=900, kernel_name="python3",
-                          resources={"metadata": {"path": str(ROOT)}}).execute()
+                          resources={"metadata": {"path": str(tmp_path)}}).execute()
   outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
   assert any("image/png" in o.get("data", {}) for o in outputs)  # the learning curves
   text = "".join(o.get("text", "") for o in outputs if o.get("output_type") == "stream")
-  assert "4 members trained at once" in text
-  table = [l for l in text.splitlines() if l.startswith("| 0.00")]
-  assert len(table) == 2 and all("| 2 |" in l for l in table)
-  rows = (tmp_path / "sweep" / "metrics.jsonl").read_text().splitlines()
-  assert len(rows) == 4 * 4  # 4 members x 4 chunks
+  members = p["SEEDS"] * len(p["LEARNING_RATES"])
+  assert f"{members} members trained at once" in text
+  for lr in p["LEARNING_RATES"]:
+    assert any(l.startswith(f"| {lr:g} | {p['SEEDS']} |") for l in text.splitlines()), lr
+  cfg = load_config(p["CONFIG"], p["OVERRIDES"])
+  chunks = math.ceil(cfg.train.total_env_steps / (cfg.env.num_envs * cfg.train.iters_per_chunk))
+  rows = (tmp_path / p["RUN_DIR"] / "metrics.jsonl").read_text().splitlines()
+  assert len(rows) == members * chunks

@@ -233,6 +233,73 @@ def test_buffer_depth_frames_wraparound_and_truncation():
       np.testing.assert_allclose(nd, _depth_value(t[i] + 1, env[i]), atol=1e-4)
 
 
+def test_n_step_transitions_stop_at_the_end_of_an_episode():
+  """`sample(..., n_step=3)` sums up to 3 discounted rewards of one episode, then
+  bootstraps from the successor of its last step (the next row's frame, or the side frame
+  of a truncation) with discount gamma^steps; a weight-0 step inside the window gives
+  weight 0. Checked against a walk over the inserted steps."""
+  n, steps, n_step, gamma = 2, 12, 3, 0.9
+  obs0 = {"depth": _frame([0.0, 0.0]), "state": jnp.zeros((n, 3))}
+  buf = sac.init_buffer(obs0, 2, capacity=2 * 16)
+  rng = np.random.default_rng(3)
+  reward = rng.normal(size=(steps, n)).astype(np.float32)
+  terminal = {(3, 0), (7, 1)}
+  truncated = {(5, 1), (9, 0)}
+  invalid = {(6, 0)}
+  insert = jax.jit(sac.insert)
+  for t in range(steps):
+    env = np.arange(n)
+    tr = sac.Transition(
+        obs={"depth": _frame(_depth_value(t, env)),
+             "state": jnp.asarray(np.stack([np.full(n, t), env, np.zeros(n)], -1), jnp.float32)},
+        action=jnp.zeros((n, 2)), reward=jnp.asarray(reward[t]),
+        terminal=jnp.asarray([(t, e) in terminal for e in env], jnp.float32),
+        truncated=jnp.asarray([(t, e) in truncated for e in env], jnp.float32),
+        next_obs={"depth": _frame([3.0 + 0.01 * e + 0.1 * t for e in env]),
+                  "state": jnp.asarray(np.stack([np.full(n, t + 1), env, np.zeros(n)], -1),
+                                       jnp.float32)},
+        weight=jnp.asarray([(t, e) not in invalid for e in env], jnp.float32))
+    buf = insert(buf, tr)
+  draw = jax.jit(sac.sample, static_argnums=(2, 3))
+  b = jax.tree.map(np.asarray, draw(buf, jax.random.PRNGKey(0), 1024, n_step, gamma))
+  t, env = b.obs["state"][:, 0].astype(int), b.obs["state"][:, 1].astype(int)
+  assert set(zip(t, env)) == {(tt, e) for tt in range(steps - n_step) for e in range(n)}
+  for i in range(1024):
+    ret, k, ok = 0.0, 0, True
+    while True:  # the reference walk
+      ret += gamma ** k * reward[t[i] + k, env[i]]
+      ok &= (t[i] + k, env[i]) not in invalid
+      last = (t[i] + k, env[i])
+      k += 1
+      if last in terminal or last in truncated or k == n_step:
+        break
+    np.testing.assert_allclose(b.reward[i], ret, rtol=1e-5)
+    np.testing.assert_allclose(b.discount[i], gamma ** k, rtol=1e-6)
+    assert b.weight[i] == ok
+    assert b.terminal[i] == (last in terminal) and b.truncated[i] == (last in truncated)
+    assert b.next_obs["state"][i, 0] == last[0] + 1
+    if last in truncated:
+      np.testing.assert_allclose(b.next_obs["depth"][i], 3.0 + 0.01 * last[1] + 0.1 * last[0],
+                                 atol=1e-4)
+    elif last not in terminal:
+      np.testing.assert_allclose(b.next_obs["depth"][i], _depth_value(last[0] + 1, last[1]),
+                                 atol=1e-4)
+  one = draw(buf, jax.random.PRNGKey(0), 64, 1, gamma)
+  assert one.discount is None  # one step: the learner's gamma
+
+
+def test_critic_target_uses_the_batch_discount(tiny):
+  """An n-step batch's discount replaces gamma in the TD target."""
+  nets, actor, critic, target, batch, fns = tiny
+  key = jax.random.PRNGKey(7)
+  y = fns["target"](actor, target, batch, key)
+  discount = jnp.full(batch.reward.shape, GAMMA ** 3)
+  y3 = fns["target"](actor, target, batch._replace(discount=discount), key)
+  boot = (1 - np.asarray(batch.terminal)) * (np.asarray(y) - np.asarray(batch.reward)) / GAMMA
+  np.testing.assert_allclose(y3, np.asarray(batch.reward) + GAMMA ** 3 * boot, rtol=1e-5,
+                             atol=1e-6)
+
+
 def test_buffer_vector_observations():
   n = 3
   buf = sac.init_buffer(jnp.zeros((n, 4)), 1, capacity=12)  # 4 rows
@@ -537,7 +604,8 @@ def test_mirror_half_flips_whole_transitions():
       lambda x, m: np.where(flipped.reshape((n,) + (1,) * (x.ndim - 1)), m, x),
       tuple(batch), (VineyardEnv.mirror_obs(batch.obs),
                      VineyardEnv.mirror_action(batch.action), batch.reward, batch.terminal,
-                     batch.truncated, VineyardEnv.mirror_obs(batch.next_obs), batch.weight)))
+                     batch.truncated, VineyardEnv.mirror_obs(batch.next_obs), batch.weight,
+                     batch.discount)))
   jax.tree.map(np.testing.assert_array_equal, tuple(out), tuple(mirrored))
   np.testing.assert_array_equal(out.obs["depth"][flipped][:, :, ::-1],
                                 batch.obs["depth"][flipped])
@@ -545,6 +613,60 @@ def test_mirror_half_flips_whole_transitions():
   for key in ("mirror_augment", "mirror_average"):
     with pytest.raises(ValueError, match=key):
       sac.make_sac(nets, SACConfig(**{key: True}))
+
+
+def test_shift_images_moves_each_image_whole_with_edge_values():
+  """`shift_images` (`sac.image_shift_px`) moves every depth image by its own offset of at
+  most pad_px pixels per axis, obs and next_obs apart, repeating edge values into the
+  border; state, action and reward are untouched; a vector observation is refused."""
+  n, h, w, pad = 64, 9, 7, 2
+  keys = jax.random.split(jax.random.PRNGKey(5), 3)
+  obs = lambda k: {"depth": jax.random.uniform(k, (n, h, w, 1)), "state": jnp.ones((n, 3))}
+  batch = sac.Transition(
+      obs=obs(keys[0]), action=jnp.ones((n, 2)), reward=jnp.arange(n, dtype=jnp.float32),
+      terminal=jnp.zeros(n), truncated=jnp.zeros(n), next_obs=obs(keys[1]),
+      weight=jnp.ones(n))
+  out = sac.shift_images(batch, keys[2], pad)
+  for before, after in ((batch.obs, out.obs), (batch.next_obs, out.next_obs)):
+    np.testing.assert_array_equal(after["state"], before["state"])
+    padded = np.pad(np.asarray(before["depth"]), ((0, 0), (pad, pad), (pad, pad), (0, 0)),
+                    mode="edge")
+    offsets = []
+    for i in range(n):  # each image is one crop of its padded self
+      hits = [(dy, dx) for dy in range(2 * pad + 1) for dx in range(2 * pad + 1)
+              if np.array_equal(padded[i, dy:dy + h, dx:dx + w], after["depth"][i])]
+      assert hits, f"image {i} is no shift of itself"
+      offsets.append(hits[0])
+    assert len(set(offsets)) > 10  # offsets drawn per image, not one for the batch
+  assert not np.array_equal(out.obs["depth"] - batch.obs["depth"],
+                            out.next_obs["depth"] - batch.next_obs["depth"])
+  np.testing.assert_array_equal(out.reward, batch.reward)
+  np.testing.assert_array_equal(sac.shift_depth(batch.obs["depth"], keys[2], 0),
+                                batch.obs["depth"])
+  with pytest.raises(ValueError, match="image_shift_px"):
+    sac.shift_images(batch._replace(obs=jnp.ones((n, 3)), next_obs=jnp.ones((n, 3))),
+                     keys[2], pad)
+
+
+def test_critic_layer_norm_adds_norms_and_splits_like_the_critic():
+  """`sac.critic_layer_norm`: each critic gains a LayerNorm per hidden layer (4 * hidden
+  parameters), the actor is unchanged, and the split critic (tower features, then heads)
+  gives the same Q as the whole one."""
+  obs = {"depth": jax.random.uniform(jax.random.PRNGKey(0), (3, 36, 36, 1)),
+         "state": jnp.ones((3, 3))}
+  action = jnp.full((3, 2), 0.2)
+  counts = {}
+  for norm in (False, True):
+    nets = nw.make_networks(LOW, HIGH, hidden=16, conv_features=4, critic_layer_norm=norm)
+    actor, critic = nw.init_params(nets, jax.random.PRNGKey(1), obs)
+    counts[norm] = (nw.num_params(actor), nw.num_params(critic["critic0"]))
+    q = nets.critic.apply({"params": critic}, obs, action)
+    feats = nw.twin_critic_features(nets.critic, critic, obs)
+    np.testing.assert_allclose(
+        nw.twin_critic_heads(nets.critic, critic, feats, obs, action), q, rtol=1e-6)
+  assert counts[True][0] == counts[False][0]
+  assert counts[True][1] == counts[False][1] + 4 * 16
+  assert "norm0" in critic["critic0"] and "norm1" in critic["critic0"]
 
 
 @pytest.mark.parametrize("conv_impl, features", [

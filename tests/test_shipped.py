@@ -54,7 +54,9 @@ def test_loads_and_acts_with_numpy_alone():
 
 def test_metadata_is_the_config_that_trained_it():
   """The file's config, read as `evaluate` reads it (settings added since the file was
-  written take their defaults, which keep the earlier behaviour), is the config file's;
+  written take their defaults, which keep the earlier behaviour, but for `sac.conv_impl`:
+  the file predates the key, and was trained with the `shift` tower that the config
+  names, where the default `auto` now takes `native` on x86-64), is the config file's;
   every setting the file records is the config file's value; its hash is that of what it
   records."""
   meta = NumpyPolicy.load(MODEL).meta
@@ -66,7 +68,9 @@ def test_metadata_is_the_config_that_trained_it():
   assert cfg.train.total_env_steps == reached and cfg.train.max_minutes == 0
   assert meta["config"]["train"]["max_minutes"] > 0
   budget = {"total_env_steps": cfg.train.total_env_steps, "max_minutes": 0.0}
-  file_cfg, _ = policy_config(MODEL, overrides=[f"train.{k}={v}" for k, v in budget.items()])
+  assert "conv_impl" not in meta["config"]["sac"] and cfg.sac.conv_impl == "shift"
+  file_cfg, _ = policy_config(MODEL, overrides=[f"train.{k}={v}" for k, v in budget.items()]
+                              + ["sac.conv_impl=shift"])
   assert to_dict(file_cfg) == to_dict(cfg)
   current = json.loads(json.dumps(to_dict(cfg)))
   for section, values in meta["config"].items():

@@ -10,7 +10,7 @@
   * the robot test: the policy on the Husky, lanes 1F and 4F of world 0, 3 runs each,
     beside the Jackal's runs of the same lanes.
 
-Every Jackal case (226 episodes) runs in one batched rollout, the Husky's in a second.
+Every Jackal case (242 episodes) runs in one batched rollout, the Husky's in a second.
 Writes report.md (a summary with the paper's numbers beside ours, then every table),
 report.json, and world<k>/ (results.json, results.md, trajectories.png) per test world.
 """
