@@ -249,9 +249,15 @@ class SACConfig:
                            "border (DrQ's random shift): the conv towers learn from views a "
                            "few pixels apart; acting and evaluation see the image as it is "
                            "(0: off)")
+  actor_mean_init_scale: float = _f(1.0, 0.0, 10.0, doc="the actor's mean head starts "
+                                    "with its initial weights (LeCun normal) times this: "
+                                    "1 is flax's default; a small value starts every seed "
+                                    "at nearly the same action, the box's centre (0.25 m/s "
+                                    "straight ahead), instead of a turn that some "
+                                    "initialisations draw")
   critic_layer_norm: bool = _f(False, doc="LayerNorm before each hidden ReLU of the "
-                               "critics (the actor, and so the exported policy, unchanged): "
-                               "steadier Q targets early in training; not the paper's")
+                               "critics (not the paper's; the actor, and so the exported "
+                               "policy, unchanged)")
   reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
                                     "features of obs from the critic loss and the critics "
                                     "as they were before this step's update (as brax's SAC "

@@ -134,6 +134,7 @@ class Actor(nn.Module):
   log_std_max: float = 2.0
   dtype: Any = jnp.float32  # computation dtype of the tower and hidden layers
   conv_impl: str = "xla"  # the tower's convs (`CONV_IMPLS`)
+  mean_init_scale: float = 1.0  # the mean head's initial weights: LeCun normal x this
 
   @nn.compact
   def __call__(self, obs: Obs) -> tuple[jax.Array, jax.Array]:
@@ -142,7 +143,8 @@ class Actor(nn.Module):
     for i, h in enumerate(self.hidden):
       x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
     x = x.astype(jnp.float32)
-    mean = nn.Dense(self.action_size, name="mean")(x)
+    mean = nn.Dense(self.action_size, name="mean", kernel_init=nn.initializers.variance_scaling(
+        self.mean_init_scale ** 2, "fan_in", "truncated_normal"))(x)
     log_std = nn.Dense(self.action_size, name="log_std")(x)
     return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
 
@@ -154,7 +156,6 @@ class Critic(nn.Module):
   depth_scale: float = 1.0
   dtype: Any = jnp.float32
   conv_impl: str = "xla"
-
   layer_norm: bool = False  # LayerNorm before each hidden ReLU (`sac.critic_layer_norm`)
 
   @nn.compact
@@ -244,7 +245,8 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
                   conv_features: int = 32, depth_scale: float = 1.0,
                   log_std_min: float = -20.0, log_std_max: float = 2.0,
                   compute_dtype: str = "float32", conv_impl: str = "xla",
-                  critic_layer_norm: bool = False) -> SACNetworks:
+                  critic_layer_norm: bool = False,
+                  actor_mean_init_scale: float = 1.0) -> SACNetworks:
   """Builds the actor and twin critic for an action box [action_low, action_high].
 
   `depth_scale` multiplies the depth (metres) before the first conv; the paper's
@@ -252,7 +254,8 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
   or "bfloat16" (mixed precision, see the module docstring). `conv_impl`: how the conv
   towers compute their convolutions (`CONV_IMPLS`; the same parameters either way).
   `critic_layer_norm`: LayerNorm before each hidden ReLU of the critics (not the paper's:
-  it adds 4 * hidden parameters per critic).
+  it adds 4 * hidden parameters per critic). `actor_mean_init_scale` scales the initial
+  weights of the actor's mean head (1: flax's LeCun normal).
   """
   dtype = jnp.dtype(compute_dtype)
   low = jnp.asarray(action_low, jnp.float32)
@@ -261,7 +264,7 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
     raise ValueError(f"bad action box: low={action_low}, high={action_high}")
   hs = (hidden, hidden)
   actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, log_std_min, log_std_max,
-                dtype, conv_impl)
+                dtype, conv_impl, actor_mean_init_scale)
   critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype, conv_impl=conv_impl,
                       layer_norm=critic_layer_norm)
   return SACNetworks(actor, critic, low, high)
@@ -284,7 +287,8 @@ def make_networks_from_config(cfg, conv_impl: str = "xla") -> SACNetworks:
       conv_features=cfg.sac.conv_features, depth_scale=depth_input_scale(cfg),
       log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
       compute_dtype=cfg.sac.compute_dtype, conv_impl=conv_impl,
-      critic_layer_norm=cfg.sac.critic_layer_norm)
+      critic_layer_norm=cfg.sac.critic_layer_norm,
+      actor_mean_init_scale=cfg.sac.actor_mean_init_scale)
 
 
 def init_params(nets: SACNetworks, key: jax.Array, obs: Obs) -> tuple[Any, Any]:

@@ -268,6 +268,21 @@ def shift_images(batch: Transition, key: jax.Array, pad_px: int) -> Transition:
                 "depth": shift_depth(batch.next_obs["depth"], k_next, pad_px)})
 
 
+def augment(batch: Transition, k_sample: jax.Array, cfg: SACConfig,
+            mirror: tuple[Callable, Callable] | None) -> Transition:
+  """A sampled batch with the augmentations `cfg` asks for: the mirror image of half of
+  it (`sac.mirror_augment`), then shifted depth images (`sac.image_shift_px`). Their keys
+  come from the batch's sampling key `k_sample`, so that runs without them keep theirs."""
+  if cfg.mirror_augment:
+    # split(k_sample)[1] is also the key `sample` draws its env indices from (k_env): a
+    # reuse, kept because the lanes.yaml results were measured with it
+    _, k_mirror = jax.random.split(k_sample)
+    batch = mirror_half(batch, k_mirror, *mirror)
+  if cfg.image_shift_px:
+    batch = shift_images(batch, jax.random.fold_in(k_sample, 1), cfg.image_shift_px)
+  return batch
+
+
 def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
              shard_batch: Callable = lambda batch: batch,
              mirror: tuple[Callable, Callable] | None = None) -> SAC:
@@ -348,15 +363,8 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
 
   def update_from(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):
     k_sample, k_update = jax.random.split(key)
-    batch = sample(buffer, k_sample, cfg.batch_size, cfg.n_step, cfg.gamma)
-    if cfg.mirror_augment:
-      # split(k_sample)[1], so that runs without the mirror keep their keys. It is also
-      # the key `sample` draws its env indices from (k_env): a reuse, kept because the
-      # lanes.yaml results were measured with it (a fresh key, e.g. fold_in, is cleaner)
-      _, k_mirror = jax.random.split(k_sample)
-      batch = mirror_half(batch, k_mirror, *mirror)
-    if cfg.image_shift_px:
-      batch = shift_images(batch, jax.random.fold_in(k_sample, 1), cfg.image_shift_px)
+    batch = augment(sample(buffer, k_sample, cfg.batch_size, cfg.n_step, cfg.gamma),
+                    k_sample, cfg, mirror)
     return update(state, shard_batch(batch), k_update, lr_scale)
 
   def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):

@@ -498,3 +498,16 @@ def test_slow_block_runs(block, slow_dir):
     r = subprocess.run([sys.executable, *argv[1:]], cwd=tmp_path, capture_output=True,
                        text=True, timeout=900, env={**os.environ, **env})
     assert r.returncode == 0, f"{shlex.join(argv)}:\n{r.stderr[-3000:]}"
+
+
+def test_the_index_lists_every_page():
+  """docs/index.md links every page of docs/ and of docs/results/, and every run record's
+  README; the tables that commands wrote (results.md, report.md, ...) are listed by their
+  folder."""
+  index = ROOT / "docs" / "index.md"
+  link = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+  linked = {(index.parent / t).resolve() for t in link.findall(index.read_text())}
+  pages = [*(ROOT / "docs").glob("*.md"), *(ROOT / "docs" / "results").glob("*.md"),
+           *(ROOT / "docs" / "results").glob("*/**/README.md")]
+  missing = [str(p.relative_to(ROOT)) for p in pages if p != index and p.resolve() not in linked]
+  assert not missing, f"docs/index.md does not link: {missing}"

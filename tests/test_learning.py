@@ -1,6 +1,6 @@
 """SAC learns the task in both travel directions: the default run (experiments/default.yaml
-as it is: 4 m rows, starts with up to 15 deg of yaw and 0.2 m of lateral offset, 12,000
-env steps; about 6 minutes on 2 cores, without its closing test-world evaluation) ends
+as it is: 4 m rows, starts with up to 15 deg of yaw and 0.2 m of lateral offset, 16,000
+env steps; about 3.5 minutes on 2 cores, without its closing test-world evaluation) ends
 with a best checkpoint whose deterministic policy, in EACH direction, reaches the end of
 the row clearly more often than driving straight and than random actions, from 128 fresh
 starts per direction that are harder than the training ones (up to 25 deg and 0.3 m:

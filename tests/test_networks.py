@@ -260,3 +260,25 @@ def test_other_tower_impls_match_the_xla_tower(image, impl):
   # (cancellations) differ by a few 1e-6 of the largest one, more on some CPUs' kernels
   for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(g_ref)):
     np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(b))))
+
+
+def test_actor_mean_init_scale_scales_the_mean_head_alone():
+  """`sac.actor_mean_init_scale` multiplies the mean head's initial weights and nothing
+  else, so that at 0.01 every seed's first deterministic action is near the box's centre
+  (v 0.25 m/s, w 0), where at 1 some seeds start with a turn."""
+  obs = {"depth": 5.0 * jax.random.uniform(jax.random.PRNGKey(0), (4, 36, 36, 1)),
+         "state": jnp.ones((4, 3))}
+  low, high = [0.0, -1.0], [0.5, 1.0]
+  turns = {}
+  for scale in (1.0, 0.01):
+    nets = nw.make_networks(low, high, hidden=32, conv_features=4, actor_mean_init_scale=scale)
+    params = [nw.init_params(nets, jax.random.PRNGKey(seed), obs)[0] for seed in range(8)]
+    turns[scale] = np.array([np.abs(nw.act_deterministic(nets, p, obs)[:, 1]).max()
+                             for p in params])
+    if scale == 1.0:
+      plain = params
+  for p, q in zip(plain, params):
+    np.testing.assert_allclose(q["mean"]["kernel"], 0.01 * p["mean"]["kernel"], rtol=1e-5)
+    rest = lambda t: {k: v for k, v in t.items() if k != "mean"}
+    jax.tree.map(np.testing.assert_array_equal, rest(p), rest(q))
+  assert turns[0.01].max() < 0.02 and turns[1.0].max() > 5 * turns[0.01].max()

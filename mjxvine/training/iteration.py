@@ -81,7 +81,8 @@ def make_learner(cfg: Config, env, shard_batch=lambda batch: batch) -> sac_lib.S
                           log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
                           compute_dtype=cfg.sac.compute_dtype,
                           conv_impl=sac_lib.learner_conv_impl(cfg.sac.conv_impl),
-                          critic_layer_norm=cfg.sac.critic_layer_norm)
+                          critic_layer_norm=cfg.sac.critic_layer_norm,
+                          actor_mean_init_scale=cfg.sac.actor_mean_init_scale)
   mirror = ((env.mirror_obs, env.mirror_action) if hasattr(env, "mirror_obs") else None)
   return sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch, mirror=mirror)
 
