@@ -276,14 +276,14 @@ def native_towers(nets: SACNetworks) -> bool:
   return runs_native_tower(nets.actor.conv_impl, nets.actor.conv_features, nets.actor.dtype)
 
 
-def make_networks_from_config(cfg, conv_impl: str = "xla") -> SACNetworks:
-  """The vineyard networks of a `mjxvine.config.Config`.
+def make_networks_from_config(cfg, conv_impl: str = "xla", box=None) -> SACNetworks:
+  """The networks of a `mjxvine.config.Config`.
 
-  Action box `config.action_box`; depth scaled by `config.depth_input_scale` so that the
+  Action box `box` = (low, high), default the vineyard's `config.action_box`; depth scaled by `config.depth_input_scale` so that the
   tower sees [0, 1]; sizes and log-std bounds from `cfg.sac`.
   """
   return make_networks(
-      *action_box(cfg), hidden=cfg.sac.hidden,
+      *(action_box(cfg) if box is None else box), hidden=cfg.sac.hidden,
       conv_features=cfg.sac.conv_features, depth_scale=depth_input_scale(cfg),
       log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
       compute_dtype=cfg.sac.compute_dtype, conv_impl=conv_impl,

@@ -26,8 +26,7 @@ import numpy as np
 from mjxvine import networks as nw
 from mjxvine.training import parallel
 from mjxvine import sac as sac_lib
-from mjxvine.config import (Config, EvalConfig, TrainConfig, depth_input_scale, parse_sweep,
-                            replace)
+from mjxvine.config import Config, EvalConfig, TrainConfig, parse_sweep, replace
 from mjxvine.episodes import PHYSICS, REWARD_PREFIX, SUCCESS, TIMEOUT
 
 
@@ -75,14 +74,8 @@ def make_learner(cfg: Config, env, shard_batch=lambda batch: batch) -> sac_lib.S
   """SAC (`mjxvine.sac.make_sac`) of the config's networks on the env's action box (the
   vineyard's [0, v_max] x [-w_max, w_max], or [-1, 1] for a brax env behind
   `wrappers.brax_env`), with the env's mirror maps when it has them."""
-  nets = nw.make_networks(env.action_low, env.action_high, hidden=cfg.sac.hidden,
-                          conv_features=cfg.sac.conv_features,
-                          depth_scale=depth_input_scale(cfg),
-                          log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
-                          compute_dtype=cfg.sac.compute_dtype,
-                          conv_impl=sac_lib.learner_conv_impl(cfg.sac.conv_impl),
-                          critic_layer_norm=cfg.sac.critic_layer_norm,
-                          actor_mean_init_scale=cfg.sac.actor_mean_init_scale)
+  nets = nw.make_networks_from_config(cfg, sac_lib.learner_conv_impl(cfg.sac.conv_impl),
+                                      box=(env.action_low, env.action_high))
   mirror = ((env.mirror_obs, env.mirror_action) if hasattr(env, "mirror_obs") else None)
   return sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch, mirror=mirror)
 
