@@ -23,9 +23,9 @@ An HTML comment on the line before a block marks it:
 
 Inline code spans (single backticks) that hold a `python -m mjxvine...` command are
 checked as a bash command is: in the prose of README.md and docs/**/*.md (not CHANGELOG.md,
-which records history), and in the comments of experiments/*.yaml, mjxvine/configs/*.yaml
-and scripts/*.sh (a run of comment lines is read as one paragraph). Prose writes commands
-with placeholders; the rules:
+which records history), and in the comments of experiments/*.yaml, mjxvine/configs/*.yaml,
+docs/results/**/recipe.yaml and scripts/*.sh (a run of comment lines is read as one
+paragraph). Prose writes commands with placeholders; the rules:
 - the module alone (`python -m mjxvine.choose`) names a command line, which must exist;
 - `...` stands for arguments left out and is dropped: the rest must still parse, so a
   required flag (`--out`) cannot be left out;
@@ -245,6 +245,7 @@ def test_bash_block(block):
 SPAN_DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 COMMENTED = [*sorted((ROOT / "experiments").glob("*.yaml")),
              *sorted((ROOT / "mjxvine" / "configs").glob("*.yaml")),
+             *sorted((ROOT / "docs" / "results").rglob("recipe.yaml")),
              *sorted((ROOT / "scripts").glob("*.sh"))]
 
 

@@ -35,6 +35,7 @@ ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
 REPRODUCTION = RESULTS / "reproduction.md"
 FACTORS = tuple(paper.PAPER_NOISE)  # the noise test's factors that the paper drove
+NSTEP = ("jackal-nstep-seed0", "jackal-nstep-seed1", "jackal-nstep-seed2")  # 3-step returns
 
 
 # --- records --------------------------------------------------------------------------------
@@ -78,6 +79,11 @@ def pct(x: float) -> str:
 
 def thousands(n: int) -> str:
   return f"{n:,}"
+
+
+def minutes_seconds(s: float) -> str:
+  s = round(s)
+  return f"{s // 60} min {s % 60} s"
 
 
 def lanes_of(report: dict, world: int) -> dict[str, dict]:
@@ -209,6 +215,9 @@ def mae_rmse(o: dict, mae="mae_m_rows", rmse="rmse_m_rows", status="rows_status"
   """"0.045 / 0.053", "0.043 (partial)" or "0.043 / 0.062 (partial)" (a unit " m" allowed)."""
   def check(cell):
     cell = cell.removesuffix(" m")
+    if o[status] == "n/a":  # no run of any row reached the end
+      assert cell == "n/a", f"{cell!r}: no run reached the end of a row"
+      return
     partial = o[status] != "full"
     assert cell.endswith(" (partial)") == partial, f"{cell!r}: the record is {o[status]}"
     figures = cell.removesuffix(" (partial)").split(" / ")
@@ -428,30 +437,27 @@ def readme_spec() -> dict[str, dict]:
   end_to_end = (RESULTS / "jackal-gaps-seed0/end-to-end/README.md").read_text()
   total = re.search(r"the whole command\*\* \| \*\*(\d+) min \d+ s\*\*", end_to_end).group(1)
   cpu_camera = record("cpu-hour/config.yaml")["camera"]
-  sym = ("jackal-sym-seed0", "jackal-lognoise-seed1", "jackal-sym-seed2")
-  assert len({_max_minutes(r) for r in sym}) == 1
   return {
       "the paper's SAC agent": {
           "world 0: success": PAPER_SUCCESS, "MAE / RMSE m": exact(f"{P[0]:.3f} / {P[1]:.3f}"),
           "worlds 1, 2, 3": exact("-"),
           "noise test at factor 8 / 10": exact(" / ".join(
               f"{sum(paper.PAPER_NOISE[k])}/{2 * paper.NOISE_RUNS}" for k in (8, 10)))},
-      "`models/jackal.npz` (`jackal-gaps.yaml`, seed 0)": {
+      "`models/jackal.npz` (`jackal.yaml`, seed 0)": {
           **_readme_suite("jackal-gaps-seed0/suite"),
           "wall-clock": exact(f"{total} min ({_max_minutes('jackal-gaps-seed0')} of training)")},
-      "`jackal-gaps.yaml`, seed 2 (checkpoint chosen on validation worlds)": {
+      "`jackal.yaml`, seed 2 (checkpoint chosen on validation worlds)": {
           **_readme_suite("jackal-gaps-seed2/suite-selected"),
           "wall-clock": exact(f"{_max_minutes('jackal-gaps-seed2')} min")},
-      "`jackal-gaps.yaml`, seed 1 (checkpoint chosen on validation worlds)": {
+      "`jackal.yaml`, seed 1 (checkpoint chosen on validation worlds)": {
           **_readme_suite("jackal-gaps-seed1/suite-selected"),
           "wall-clock": exact(f"{_max_minutes('jackal-gaps-seed1')} min")},
-      "`jackal.yaml`, seed 0 (shipped before)": {
+      "`jackal/recipe.yaml`, seed 0 (shipped before)": {
           **_readme_suite("jackal/suite"), "wall-clock": exact(f"{_max_minutes('jackal')} min")},
-      "`jackal-sym.yaml`, seeds 0, 1, 2": {
-          **_joined(*(_readme_suite(f) for f in ("jackal-sym-seed0/suite",
-                                                 "jackal-lognoise-seed1/suite-mirror-average",
-                                                 "jackal-sym-seed2/suite"))),
-          "wall-clock": exact(f"{_max_minutes(sym[0])} min each")},
+      "`jackal.yaml` with 3-step returns and the native tower, seeds 0, 1, 2": {
+          **_joined(*(_readme_suite(f"{run}/suite") for run in NSTEP)),
+          "wall-clock": exact(minutes_seconds(record(f"{NSTEP[0]}/record.json")["wall_s"])
+                              + " (seed 0, end to end)")},
       # the release (mjxvine 0.1.0) is in no record: the image size is
       "`cpu.yaml` (at 40x40, mjxvine 0.1.0)": {
           **_readme_single("cpu-hour/results.json"), "trained on": MACHINE,
@@ -600,8 +606,45 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
       "noise 1F / 4F at factors 2, 4, 6, 8, 10", "Husky 1F / 4F",
       "held-out test worlds 16, 17, 18 (first evaluated after every choice)"], *columns)
 
-  # jackal.yaml: its training, against the targets (beside the noise drawn from [0.5, 6])
-  heading = "`jackal.yaml`, the earlier shipped policy, seeds 0, 1, 2"
+  # 3-step returns on the shipped recipe: seed 0 timed end to end (record.json), 3 seeds
+  heading = "3-step returns on the shipped recipe, seeds 0, 1, 2"
+  run = NSTEP[0]
+  metrics, sel = record(f"{run}/metrics.jsonl"), record(f"{run}/selection.json")
+  sps, ups = learning_speeds(metrics)
+  closing = evaluation(f"{run}/closing-eval.md")["overall"]["success"]
+  closing_s = float(re.search(r"Rollout wall-clock: ([\d.]+) s",
+                              (RESULTS / f"{run}/closing-eval.md").read_text()).group(1))
+  wall_s = record(f"{run}/record.json")["wall_s"]
+  choice_s = sum(c["validation"]["wall_s"] for c in sel["candidates"])
+  assert record(f"{run}/config.yaml")["train"]["total_env_steps"] == metrics[-1]["env_steps"]
+  out[(heading, 0)] = {label: [check] for label, check in {
+      "command": COMMAND, "device": MACHINE, "run record": NAMES,
+      "wall-clock": contains(
+          minutes_seconds(wall_s) + " from the command's start",
+          minutes_seconds(wall_s - choice_s - closing_s) + " for start-up",
+          minutes_seconds(choice_s) + " for the choice", f"{closing_s:.0f} s for the rollouts",
+          f"test world 0, {closing}"),
+      "env steps": contains(
+          f"{thousands(metrics[-1]['env_steps'])} (median {np.median(sps):.0f} env-steps/s "
+          f"and {np.median(ups):.0f} gradient steps/s while learning; "
+          f"{np.percentile(sps, 5):.0f}-{np.percentile(sps, 95):.0f} and "
+          f"{np.percentile(ups, 5):.0f}-{np.percentile(ups, 95):.0f} for 90 % of the chunks)"),
+  }.items()}
+  columns = []
+  for run in NSTEP:
+    assert all(c["validation"]["episodes"] == 72
+               for c in record(f"{run}/selection.json")["candidates"])
+    columns.append({**_suite_column(suite(f"{run}/suite")), "candidates": candidates(run),
+                    "validation": validation_scores(run),
+                    "selected": exact(thousands(record(f"{run}/selection.json")["selected"]))})
+  out[(heading, 1)] = _seeds([
+      "candidates (env steps)", "validation successes /72, MAE", "selected checkpoint",
+      "test world 0: success", "test world 0: MAE (mean of rows)",
+      "test worlds 1, 2, 3: success", "test worlds 1, 2, 3: MAE",
+      "noise 1F / 4F at factors 2, 4, 6, 8, 10", "Husky 1F / 4F"], *columns)
+
+  # jackal/recipe.yaml: its training, against the targets (beside the noise drawn from [0.5, 6])
+  heading = "`jackal/recipe.yaml`, the earlier shipped policy, seeds 0, 1, 2"
   t = _training("jackal")
   best, metrics = record("jackal/best.json"), record("jackal/metrics.jsonl")
   assert best["env_steps"] == metrics[-1]["env_steps"]
@@ -636,7 +679,7 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
        "best": best_fresh_starts(f"jackal-lognoise-seed{s}")} for s in (0, 1)))
   plain = [exact(", ".join(str(overall(suite(f"jackal-lognoise-seed{s}/suite"), w)["success"])
                            for w in paper.SUITE_WORLDS)) for s in (0, 1)]
-  out[("The mirror-averaged action, `jackal-sym.yaml`, seeds 0, 1, 2", 0)] = _seeds(
+  out[("The mirror-averaged action, `jackal-sym`, seeds 0, 1, 2", 0)] = _seeds(
       labels + ["the same checkpoint with the plain action: worlds 0-3"],
       {**_suite_column(suite("jackal-sym-seed0/suite")), "plain": plain[0],
        "best": best_fresh_starts("jackal-sym-seed0")},
@@ -648,22 +691,22 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
   # held-out worlds: heldout/<policy>-world<N>.md
   for heading, worlds, policies in (
       ("Held-out test worlds 4, 5, 6", (4, 5, 6), {
-          "`jackal.yaml` seed 0 (shipped then; uniform draw)": "jackal-seed0",
+          "`jackal/recipe.yaml` seed 0 (shipped then; uniform draw)": "jackal-seed0",
           "log-uniform draw, seed 1": "lognoise-seed1",
           "log-uniform draw, seed 0": "lognoise-seed0"}),
       ("Held-out test worlds 7, 8, 9", (7, 8, 9), {
-          "`jackal.yaml` seed 0 (shipped then)": "jackal-seed0",
-          "`jackal-sym.yaml` seed 0": "jackal-sym-seed0",
-          "`jackal-sym.yaml` seed 1 (the log-uniform checkpoint, averaged action)":
+          "`jackal/recipe.yaml` seed 0 (shipped then)": "jackal-seed0",
+          "`jackal-sym` seed 0": "jackal-sym-seed0",
+          "`jackal-sym` seed 1 (the log-uniform checkpoint, averaged action)":
               "jackal-sym-seed1",
-          "`jackal-sym.yaml` seed 2": "jackal-sym-seed2"}),
+          "`jackal-sym` seed 2": "jackal-sym-seed2"}),
       ("Held-out test worlds 10, 11, 12", (10, 11, 12), {
-          "`jackal.yaml` seed 0 (shipped then)": "jackal-seed0",
-          "`jackal-gaps.yaml` seed 1": "jackal-gaps-seed1",
-          "`jackal-gaps.yaml` seed 2": "jackal-gaps-seed2"}),
+          "`jackal/recipe.yaml` seed 0 (shipped then)": "jackal-seed0",
+          "`jackal.yaml` seed 1": "jackal-gaps-seed1",
+          "`jackal.yaml` seed 2": "jackal-gaps-seed2"}),
       ("Held-out test worlds 13, 14, 15", (13, 14, 15), {
-          "`models/jackal.npz` (`jackal-gaps.yaml` seed 0)": "jackal-gaps-seed0",
-          "`jackal.yaml` seed 0 (shipped before)": "jackal-seed0"})):
+          "`models/jackal.npz` (`jackal.yaml` seed 0)": "jackal-gaps-seed0",
+          "`jackal/recipe.yaml` seed 0 (shipped before)": "jackal-seed0"})):
     out[(heading, 0)] = {
         label: [*(heldout_cell(name, w) for w in worlds), heldout_note(name, worlds)]
         for label, name in policies.items()}

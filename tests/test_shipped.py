@@ -1,5 +1,5 @@
 """The shipped policy, models/jackal.npz: it loads and acts with numpy alone, its metadata
-is the config that trained it (experiments/jackal-gaps.yaml), and on the JAX evaluator it
+is the config that trained it (experiments/jackal.yaml), and on the JAX evaluator it
 drives test world 0's lane 1 forward (straight) and lane 4 in reverse (curved) to the end
 of the row."""
 
@@ -25,7 +25,7 @@ from mjxvine.worlds import load_test_world
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "jackal.npz"
-CONFIG = ROOT / "experiments" / "jackal-gaps.yaml"
+CONFIG = ROOT / "experiments" / "jackal.yaml"
 
 _NUMPY_ONLY = NUMPY_ONLY_PRELUDE + textwrap.dedent("""
   import numpy as np
