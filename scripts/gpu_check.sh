@@ -25,8 +25,7 @@ python - <<'PY' | tee "$RES/device.txt"
 import jax, mujoco; print("jax", jax.__version__, "mujoco", mujoco.__version__, jax.default_backend(),
                           [d.device_kind for d in jax.devices()])
 PY
-TRAIN="--config experiments/jackal.yaml --seeds 3 --set eval.runs_after_train=0
-  --set sac.conv_impl=auto"  # the config names the CPU tower it was shipped with
+TRAIN="--config experiments/jackal.yaml --seeds 3 --set eval.runs_after_train=0"
 MEMBERS="0 1 2"
 if [ "${TINY:-0}" = 1 ]; then
   TRAIN="$TRAIN --set world.pool_size=2 --set world.train_length_m=4 --set env.num_envs=4

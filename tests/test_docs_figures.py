@@ -36,6 +36,11 @@ RESULTS = ROOT / "docs" / "results"
 REPRODUCTION = RESULTS / "reproduction.md"
 FACTORS = tuple(paper.PAPER_NOISE)  # the noise test's factors that the paper drove
 NSTEP = ("jackal-nstep-seed0", "jackal-nstep-seed1", "jackal-nstep-seed2")  # 3-step returns
+SEEDS = ("jackal-native-seed0", "jackal-native-seed1", "jackal-native-seed2")  # jackal.yaml
+SHIPPED = SEEDS[0]            # the run of models/jackal.npz
+BEFORE = "jackal-gaps-seed0"  # the policy shipped before it: jackal.yaml with `shift`
+GAPS = "`jackal-gaps`, the policy shipped before, seeds 0, 1, 2"  # its section
+HELDOUT = (19, 20, 21)        # test worlds first evaluated after the shipped policy was chosen
 
 
 # --- records --------------------------------------------------------------------------------
@@ -313,11 +318,12 @@ def heldout_summary(name: str, worlds, *, mae_prefix: str = "MAE ") -> Check:
   return check
 
 
-def validation_summary(run: str) -> Check:
-  """"20/20 each, MAE 0.039, 0.039, 0.042 m" of the run's validation worlds 100-102."""
-  docs = [evaluation(f"{run}/validation/world{w}.md")["overall"] for w in (100, 101, 102)]
-  assert len({d["success"] for d in docs}) == 1
-  return exact(f"{docs[0]['success']} each, MAE {', '.join(d['mae'] for d in docs)} m")
+def chosen_validation(run: str) -> Check:
+  """"66/72, MAE 0.023 m": the chosen candidate's successes on the validation worlds and
+  their noise rows (`selection.json`), and its MAE."""
+  s = record(f"{run}/selection.json")
+  v = next(c for c in s["candidates"] if c["env_steps"] == s["selected"])["validation"]
+  return exact(f"{v['success']}/{v['episodes']}, MAE {f3(v['mae_m'])} m")
 
 
 def candidates(run: str) -> Check:
@@ -434,9 +440,11 @@ def _joined(*columns: dict) -> dict:
 
 def readme_spec() -> dict[str, dict]:
   """README's results table: row (first cell) -> column -> check or reason."""
-  end_to_end = (RESULTS / "jackal-gaps-seed0/end-to-end/README.md").read_text()
+  end_to_end = (RESULTS / f"{BEFORE}/end-to-end/README.md").read_text()
   total = re.search(r"the whole command\*\* \| \*\*(\d+) min \d+ s\*\*", end_to_end).group(1)
   cpu_camera = record("cpu-hour/config.yaml")["camera"]
+  gaps = ("jackal-gaps-seed0", "jackal-gaps-seed1", "jackal-gaps-seed2")
+  assert {_max_minutes(r) for r in gaps} == {_max_minutes(BEFORE)}
   return {
       "the paper's SAC agent": {
           "world 0: success": PAPER_SUCCESS, "MAE / RMSE m": exact(f"{P[0]:.3f} / {P[1]:.3f}"),
@@ -444,17 +452,20 @@ def readme_spec() -> dict[str, dict]:
           "noise test at factor 8 / 10": exact(" / ".join(
               f"{sum(paper.PAPER_NOISE[k])}/{2 * paper.NOISE_RUNS}" for k in (8, 10)))},
       "`models/jackal.npz` (`jackal.yaml`, seed 0)": {
-          **_readme_suite("jackal-gaps-seed0/suite"),
-          "wall-clock": exact(f"{total} min ({_max_minutes('jackal-gaps-seed0')} of training)")},
-      "`jackal.yaml`, seed 2 (checkpoint chosen on validation worlds)": {
-          **_readme_suite("jackal-gaps-seed2/suite-selected"),
-          "wall-clock": exact(f"{_max_minutes('jackal-gaps-seed2')} min")},
-      "`jackal.yaml`, seed 1 (checkpoint chosen on validation worlds)": {
-          **_readme_suite("jackal-gaps-seed1/suite-selected"),
-          "wall-clock": exact(f"{_max_minutes('jackal-gaps-seed1')} min")},
-      "`jackal/recipe.yaml`, seed 0 (shipped before)": {
+          **_readme_suite(f"{SHIPPED}/suite"),
+          "wall-clock": exact(f"{round(record(f'{SHIPPED}/record.json')['wall_s'] / 60)} min "
+                              "(shared: an upper bound)")},
+      "`jackal.yaml`, seeds 1, 2": {
+          **_joined(*(_readme_suite(f"{run}/suite") for run in SEEDS[1:])),
+          "wall-clock": exact("shared")},
+      "`jackal-gaps` (`shift` tower), seeds 0, 1, 2: seed 0 shipped before": {
+          **_joined(*(_readme_suite(f) for f in ("jackal-gaps-seed0/suite",
+                                                 "jackal-gaps-seed1/suite-selected",
+                                                 "jackal-gaps-seed2/suite-selected"))),
+          "wall-clock": exact(f"{total} min; {_max_minutes(BEFORE)} min of training each")},
+      "`jackal/recipe.yaml`, seed 0 (shipped before that)": {
           **_readme_suite("jackal/suite"), "wall-clock": exact(f"{_max_minutes('jackal')} min")},
-      "`jackal.yaml` with 3-step returns and the native tower, seeds 0, 1, 2": {
+      "`jackal.yaml` with 3-step returns, seeds 0, 1, 2": {
           **_joined(*(_readme_suite(f"{run}/suite") for run in NSTEP)),
           "wall-clock": exact(minutes_seconds(record(f"{NSTEP[0]}/record.json")["wall_s"])
                               + " (seed 0, end to end)")},
@@ -517,8 +528,9 @@ AGAINST = {  # row label of an "against the targets" table -> (column key, the p
     "noise, lanes 1F and 4F, 3 runs: success at factors 2, 4, 6, 8, 10": (
         "noise", exact(PAPER_NOISE_TEXT)),
     "Husky, lanes 1F and 4F, 3 runs": ("husky", PAPER_HUSKY),
-    "validation worlds 100, 101, 102 (2 runs per lane-direction)": ("validation", exact("-")),
-    "held-out test worlds 13, 14, 15 ([below](#held-out-test-worlds-13-14-15))": (
+    "validation worlds 100-102 and their noise rows (the choice's 72 runs)": (
+        "validation", exact("-")),
+    "held-out test worlds 19, 20, 21 ([below](#held-out-test-worlds-19-20-21))": (
         "heldout", exact("-")),
 }
 SEED_ROWS = {  # row label of a seeds table -> column key
@@ -531,6 +543,21 @@ SEED_ROWS = {  # row label of a seeds table -> column key
     "held-out test worlds 16, 17, 18 (first evaluated after every choice)": "heldout",
     "the same checkpoint with the plain action: worlds 0-3": "plain",
 }
+
+
+CHOSEN_ROWS = [  # a seeds table of runs that chose their checkpoint on validation worlds
+    "candidates (env steps)", "validation successes /72, MAE", "selected checkpoint",
+    "test world 0: success", "test world 0: MAE (mean of rows)", "test worlds 1, 2, 3: success",
+    "test worlds 1, 2, 3: MAE", "noise 1F / 4F at factors 2, 4, 6, 8, 10", "Husky 1F / 4F"]
+
+
+def _chosen_column(run: str) -> dict:
+  """A seeds-table column of a run that chose its checkpoint on validation worlds."""
+  assert all(c["validation"]["episodes"] == 72
+             for c in record(f"{run}/selection.json")["candidates"])
+  return {**_suite_column(suite(f"{run}/suite")), "candidates": candidates(run),
+          "validation": validation_scores(run),
+          "selected": exact(thousands(record(f"{run}/selection.json")["selected"]))}
 
 
 def _against(labels: list[str], *columns: dict, target: bool = True) -> dict:
@@ -548,7 +575,42 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
   column]; "__header__": checks of the header cells after the first."""
   out = {}
 
-  # Training: jackal-gaps.yaml seed 0, timed end to end on a second run
+  # Training: jackal.yaml seed 0 with the native tower, beside other processes
+  metrics, sel = record(f"{SHIPPED}/metrics.jsonl"), record(f"{SHIPPED}/selection.json")
+  sps, ups = learning_speeds(metrics)
+  chosen = next(c for c in sel["candidates"] if c["env_steps"] == sel["selected"])
+  assert record(f"{SHIPPED}/config.yaml")["train"]["total_env_steps"] == metrics[-1]["env_steps"]
+  e2e = (RESULTS / f"{BEFORE}/end-to-end/README.md").read_text()
+  out[("Training", 0)] = {label: [check] for label, check in {
+      "command": COMMAND, "device": MACHINE, "run record": NAMES, "seeds": WHICH,
+      "the policy shipped before": WHICH,
+      "wall-clock": contains(
+          minutes_seconds(record(f"{SHIPPED}/record.json")["wall_s"])
+          + " from the command's start",
+          minutes_seconds(record(f"{NSTEP[0]}/record.json")["wall_s"]) + " alone",
+          re.search(r"the whole command\*\* \| \*\*([^*]+)\*\*", e2e).group(1) + " with `shift`"),
+      "env steps": contains(
+          f"{thousands(metrics[-1]['env_steps'])} (median {np.median(sps):.0f} env-steps/s "
+          f"and {np.median(ups):.0f} gradient steps/s while learning beside the other "
+          f"processes; {np.percentile(sps, 5):.0f}-{np.percentile(sps, 95):.0f} and "
+          f"{np.percentile(ups, 5):.0f}-{np.percentile(ups, 95):.0f} for 90 % of the chunks)"),
+      "chosen checkpoint": contains(
+          f"{thousands(sel['selected'])} env steps, of the candidates "
+          + ", ".join(f"{c['env_steps'] // 1000}k" for c in sel["candidates"]),
+          f"drove {chosen['validation']['success']} of the {chosen['validation']['episodes']} "
+          "validation runs"),
+  }.items()}
+
+  # Against the targets: the shipped policy and the one before it
+  columns = [{**_suite_column(suite(f"{run}/suite"), every=run == SHIPPED),
+              "validation": chosen_validation(run),
+              "heldout": heldout_summary(run, HELDOUT)} for run in (SHIPPED, BEFORE)]
+  out[("Against the targets", 0)] = _against(list(AGAINST)[:3] + list(AGAINST)[4:], *columns)
+
+  # Seeds of jackal.yaml
+  out[("Seeds", 0)] = _seeds(CHOSEN_ROWS, *map(_chosen_column, SEEDS))
+
+  # jackal-gaps, shipped before: its training, timed end to end on a second run
   t = _training("jackal-gaps-seed0")
   e2e = (RESULTS / "jackal-gaps-seed0/end-to-end/README.md").read_text()
   choice_s = round(sum(c["validation"]["wall_s"] for c in
@@ -575,31 +637,20 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
   firsts = [record(f"jackal-gaps-seed{s}/best.json") for s in (0, 1, 2)]
   fr = [f"{pct(b['eval_success_forward'])} / {pct(b['eval_success_reverse'])}" for b in firsts]
   t["seeds"] = contains(f"({fr[0]}, against {fr[1]} and {fr[2]})")
-  t["the earlier shipped policy"] = WHICH
-  out[("Training", 0)] = {label: [check] for label, check in t.items()}
+  out[(GAPS, 0)] = {label: [check] for label, check in t.items()}
 
-  # Against the targets: the shipped policy and the one before it
-  gaps = [suite("jackal-gaps-seed0/suite" if s == 0 else f"jackal-gaps-seed{s}/suite-selected")
-          for s in (0, 1, 2)]
-  shipped = {**_suite_column(gaps[0], every=True),
-             "validation": validation_summary("jackal-gaps-seed0"),
-             "heldout": heldout_summary("jackal-gaps-seed0", (13, 14, 15))}
-  before = {**_suite_column(suite("jackal/suite")), "validation": exact("not run"),
-            "heldout": heldout_summary("jackal-seed0", (13, 14, 15), mae_prefix="")}
-  out[("Against the targets", 0)] = _against(list(AGAINST)[:3] + list(AGAINST)[4:],
-                                             shipped, before)
-
-  # Seeds of jackal-gaps.yaml
+  # its seeds
   columns = []
   for s in (0, 1, 2):
     run = f"jackal-gaps-seed{s}"
     assert all(c["validation"]["episodes"] == 72
                for c in record(f"{run}/selection.json")["candidates"])
-    columns.append({**_suite_column(gaps[s]), "candidates": candidates(run),
+    report = suite(f"{run}/suite" if s == 0 else f"{run}/suite-selected")
+    columns.append({**_suite_column(report), "candidates": candidates(run),
                     "validation": validation_scores(run),
                     "selected": exact(thousands(record(f"{run}/selection.json")["selected"])),
                     "heldout": heldout_summary(run, (16, 17, 18))})
-  out[("Seeds", 0)] = _seeds([
+  out[(GAPS, 1)] = _seeds([
       "candidates (env steps)", "validation successes /72, MAE", "selected checkpoint",
       "test world 0: success", "test world 0: MAE / RMSE (mean of rows)",
       "test worlds 1, 2, 3: success", "test worlds 1, 2, 3: MAE",
@@ -630,18 +681,7 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
           f"{np.percentile(sps, 5):.0f}-{np.percentile(sps, 95):.0f} and "
           f"{np.percentile(ups, 5):.0f}-{np.percentile(ups, 95):.0f} for 90 % of the chunks)"),
   }.items()}
-  columns = []
-  for run in NSTEP:
-    assert all(c["validation"]["episodes"] == 72
-               for c in record(f"{run}/selection.json")["candidates"])
-    columns.append({**_suite_column(suite(f"{run}/suite")), "candidates": candidates(run),
-                    "validation": validation_scores(run),
-                    "selected": exact(thousands(record(f"{run}/selection.json")["selected"]))})
-  out[(heading, 1)] = _seeds([
-      "candidates (env steps)", "validation successes /72, MAE", "selected checkpoint",
-      "test world 0: success", "test world 0: MAE (mean of rows)",
-      "test worlds 1, 2, 3: success", "test worlds 1, 2, 3: MAE",
-      "noise 1F / 4F at factors 2, 4, 6, 8, 10", "Husky 1F / 4F"], *columns)
+  out[(heading, 1)] = _seeds(CHOSEN_ROWS, *map(_chosen_column, NSTEP))
 
   # jackal/recipe.yaml: its training, against the targets (beside the noise drawn from [0.5, 6])
   heading = "`jackal/recipe.yaml`, the earlier shipped policy, seeds 0, 1, 2"
@@ -705,8 +745,11 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
           "`jackal.yaml` seed 1": "jackal-gaps-seed1",
           "`jackal.yaml` seed 2": "jackal-gaps-seed2"}),
       ("Held-out test worlds 13, 14, 15", (13, 14, 15), {
-          "`models/jackal.npz` (`jackal.yaml` seed 0)": "jackal-gaps-seed0",
-          "`jackal/recipe.yaml` seed 0 (shipped before)": "jackal-seed0"})):
+          "`jackal-gaps` seed 0 (shipped then)": "jackal-gaps-seed0",
+          "`jackal/recipe.yaml` seed 0 (shipped before)": "jackal-seed0"}),
+      ("Held-out test worlds 19, 20, 21", HELDOUT, {
+          "`models/jackal.npz` (`jackal.yaml` seed 0)": SHIPPED,
+          "`jackal-gaps` seed 0 (shipped before)": BEFORE})):
     out[(heading, 0)] = {
         label: [*(heldout_cell(name, w) for w in worlds), heldout_note(name, worlds)]
         for label, name in policies.items()}
@@ -795,7 +838,7 @@ def test_the_report_section_is_the_suite_report():
   """reproduction.md's "The report" is the shipped policy's suite report as the suite
   writes it from the record (headings one level down, figure paths from the page)."""
   from mjxvine.evaluation.suite import report_markdown
-  folder = "jackal-gaps-seed0/suite"
+  folder = f"{SHIPPED}/suite"
   lines = report_markdown(suite(folder)).splitlines()
   assert lines[0].startswith("# The paper's evaluation: ") and not lines[1]
   expected = "\n".join("#" + l if l.startswith("## ") else l for l in lines[2:])
@@ -816,7 +859,7 @@ def test_a_wrong_figure_fails():
   row = next(r for r in table.rows if r[0].startswith("`models/jackal.npz`"))
   col = table.header.index("MAE / RMSE m")
   bad = [list(r) for r in table.rows]
-  bad[table.rows.index(row)][col] = "0.046 / 0.053"
+  bad[table.rows.index(row)][col] = "9.999 / 9.999"
   assert _failures(Table(table.where, table.heading, table.header, bad), _specs()[("README", 0)])
   assert claims("world 1 5F, 5R; world 3 3F, 3R, 5R 0/5", (1, 2, 3)) == {
       (1, "5F", 0, 5), (1, "5R", 0, 5), (3, "3F", 0, 5), (3, "3R", 0, 5), (3, "5R", 0, 5)}
