@@ -103,6 +103,12 @@ def noise_runs(report: dict, lane: str) -> list[int]:
   return [report["noise"][str(k)][lane]["success"] for k in FACTORS]
 
 
+def spread(sps: np.ndarray, ups: np.ndarray) -> str:
+  """"43-52 and 21-26 for 90 % of the chunks": the 5th-95th percentiles of both rates."""
+  return (f"{np.percentile(sps, 5):.0f}-{np.percentile(sps, 95):.0f} and "
+          f"{np.percentile(ups, 5):.0f}-{np.percentile(ups, 95):.0f} for 90 % of the chunks")
+
+
 def learning_speeds(metrics: list[dict]) -> tuple[np.ndarray, np.ndarray]:
   """env steps/s and gradient steps/s of the chunks that learned (a critic loss)."""
   rows = [r for r in metrics if r["critic_loss"]]
@@ -592,8 +598,7 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
       "env steps": contains(
           f"{thousands(metrics[-1]['env_steps'])} (median {np.median(sps):.0f} env-steps/s "
           f"and {np.median(ups):.0f} gradient steps/s while learning beside the other "
-          f"processes; {np.percentile(sps, 5):.0f}-{np.percentile(sps, 95):.0f} and "
-          f"{np.percentile(ups, 5):.0f}-{np.percentile(ups, 95):.0f} for 90 % of the chunks)"),
+          f"processes; {spread(sps, ups)})"),
       "chosen checkpoint": contains(
           f"{thousands(sel['selected'])} env steps, of the candidates "
           + ", ".join(f"{c['env_steps'] // 1000}k" for c in sel["candidates"]),
@@ -622,9 +627,7 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
       re.search(r"the closing evaluation [^|]*\| (\d+ s), ", e2e).group(1)
       + " for the closing evaluation"))
   sps, ups = learning_speeds(record("jackal-gaps-seed0/metrics.jsonl"))
-  t["env steps"] = both(t["env steps"], contains(
-      f"{np.percentile(sps, 5):.0f}-{np.percentile(sps, 95):.0f} and "
-      f"{np.percentile(ups, 5):.0f}-{np.percentile(ups, 95):.0f} for 90 % of the chunks"))
+  t["env steps"] = both(t["env steps"], contains(spread(sps, ups)))
   best = record("jackal-gaps-seed0/best.json")
   evals = {r["env_steps"]: r for r in record("jackal-gaps-seed0/metrics.jsonl")
            if "eval_mae_m" in r}
@@ -677,9 +680,7 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
           f"test world 0, {closing}"),
       "env steps": contains(
           f"{thousands(metrics[-1]['env_steps'])} (median {np.median(sps):.0f} env-steps/s "
-          f"and {np.median(ups):.0f} gradient steps/s while learning; "
-          f"{np.percentile(sps, 5):.0f}-{np.percentile(sps, 95):.0f} and "
-          f"{np.percentile(ups, 5):.0f}-{np.percentile(ups, 95):.0f} for 90 % of the chunks)"),
+          f"and {np.median(ups):.0f} gradient steps/s while learning; {spread(sps, ups)})"),
   }.items()}
   out[(heading, 1)] = _seeds(CHOSEN_ROWS, *map(_chosen_column, NSTEP))
 
