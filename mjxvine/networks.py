@@ -279,8 +279,9 @@ def native_towers(nets: SACNetworks) -> bool:
 def make_networks_from_config(cfg, conv_impl: str = "xla", box=None) -> SACNetworks:
   """The networks of a `mjxvine.config.Config`.
 
-  Action box `box` = (low, high), default the vineyard's `config.action_box`; depth scaled by `config.depth_input_scale` so that the
-  tower sees [0, 1]; sizes and log-std bounds from `cfg.sac`.
+  Action box `box` = (low, high), by default the vineyard's `config.action_box`; depth
+  scaled by `config.depth_input_scale` so that the tower sees [0, 1]; sizes and log-std
+  bounds from `cfg.sac`.
   """
   return make_networks(
       *(action_box(cfg) if box is None else box), hidden=cfg.sac.hidden,

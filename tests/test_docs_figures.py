@@ -557,11 +557,12 @@ CHOSEN_ROWS = [  # a seeds table of runs that chose their checkpoint on validati
     "test worlds 1, 2, 3: MAE", "noise 1F / 4F at factors 2, 4, 6, 8, 10", "Husky 1F / 4F"]
 
 
-def _chosen_column(run: str) -> dict:
-  """A seeds-table column of a run that chose its checkpoint on validation worlds."""
+def _chosen_column(run: str, folder: str = "suite") -> dict:
+  """A seeds-table column of a run that chose its checkpoint on validation worlds (its
+  chosen policy's suite report in `run/folder`)."""
   assert all(c["validation"]["episodes"] == 72
              for c in record(f"{run}/selection.json")["candidates"])
-  return {**_suite_column(suite(f"{run}/suite")), "candidates": candidates(run),
+  return {**_suite_column(suite(f"{run}/{folder}")), "candidates": candidates(run),
           "validation": validation_scores(run),
           "selected": exact(thousands(record(f"{run}/selection.json")["selected"]))}
 
@@ -643,16 +644,9 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
   out[(GAPS, 0)] = {label: [check] for label, check in t.items()}
 
   # its seeds
-  columns = []
-  for s in (0, 1, 2):
-    run = f"jackal-gaps-seed{s}"
-    assert all(c["validation"]["episodes"] == 72
-               for c in record(f"{run}/selection.json")["candidates"])
-    report = suite(f"{run}/suite" if s == 0 else f"{run}/suite-selected")
-    columns.append({**_suite_column(report), "candidates": candidates(run),
-                    "validation": validation_scores(run),
-                    "selected": exact(thousands(record(f"{run}/selection.json")["selected"])),
-                    "heldout": heldout_summary(run, (16, 17, 18))})
+  columns = [{**_chosen_column(f"jackal-gaps-seed{s}", "suite" if s == 0 else "suite-selected"),
+              "heldout": heldout_summary(f"jackal-gaps-seed{s}", (16, 17, 18))}
+             for s in (0, 1, 2)]
   out[(GAPS, 1)] = _seeds([
       "candidates (env steps)", "validation successes /72, MAE", "selected checkpoint",
       "test world 0: success", "test world 0: MAE / RMSE (mean of rows)",
