@@ -21,9 +21,11 @@ validation protocol:
   3 runs each (the noise test's rows and runs).
 
 One batched rollout per candidate (`rollout.rollout_cases`, rollout seed 0: the same
-cases and keys for every candidate). The candidate with the most successes over all of
-it is chosen, ties broken by the lower MAE (the mean over the validation worlds of each
-world's mean of rows). RUN/selection.json records every candidate's scores and the choice,
+cases and keys for every candidate). The candidates that meet the bar (at least
+`train.select_success_bar` of the validation worlds' runs, and the noise rows at least as
+often as the paper's) rank first, by the lower MAE (the mean over the validation worlds
+of each world's mean of rows); the others after them, by their successes, then the MAE
+(`choice.rank`). RUN/selection.json records every candidate's scores and the choice,
 and is written after each candidate, so an interrupted selection resumes; RUN/selected.npz
 is the chosen policy, which a run dir's "best" policy means from then on
 (`checkpoints.selected_policy`: `evaluate --policy RUN`, `export --checkpoint RUN`).

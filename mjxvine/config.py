@@ -310,6 +310,10 @@ class TrainConfig:
                               "validation worlds: the best by the weaker direction's "
                               "success, then the lower MAE")
   select_runs: int = _f(2, 1, 100, doc="runs per lane-direction of each validation world")
+  select_success_bar: float = _f(0.95, 0.0, 1.0, doc="the share of the validation worlds' "
+                                 "runs a candidate must drive to the EoR, its noise rows "
+                                 "at least the paper's, to be ranked by its MAE ahead of "
+                                 "the candidates that do not (they rank by successes)")
   select_noise_factors: tuple[float, float] = _f(
       (8.0, 10.0), 0.0, 100.0, doc="depth-noise factors at which rows 1F and 4F of the "
       "first validation world are driven too, 3 runs each (as the noise test)")

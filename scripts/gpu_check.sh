@@ -4,7 +4,7 @@
 #   1. experiments/jackal.yaml (the shipped agent's recipe) from seeds 0, 1 and 2,
 #      vmapped in one process, for STEPS env steps (default 80,000; the recipe trains
 #      138,800) with the backend's own tower; each member chooses its own checkpoint
-#      on the recipe's validation worlds (train.select_worlds:
+#      of its 4 best evaluations on the recipe's validation worlds (train.select_worlds:
 #      RUN/selected_members/member<k>.npz), never on a test world;
 #   2. the paper's suite (`evaluate --suite paper`) of each member's chosen actor, the
 #      three at once.
@@ -36,7 +36,8 @@ if [ "${TINY:-0}" = 1 ]; then
     --set train.select_runs=1 --set train.select_candidates=2"
   MEMBERS="0"; T_TRAIN=900; T_EVAL=600; MINUTES=10
 else
-  TRAIN="$TRAIN --set train.total_env_steps=${STEPS:-80000}"
+  # 4 candidates per member (the recipe scores 8): the choice within the step's timeout
+  TRAIN="$TRAIN --set train.total_env_steps=${STEPS:-80000} --set train.select_candidates=4"
   T_TRAIN=${T_TRAIN:-540}; T_EVAL=${T_EVAL:-180}; MINUTES=${MINUTES:-5}  # the choice after training
 fi
 pack() {

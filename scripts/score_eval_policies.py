@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from mjxvine import networks as nw  # noqa: E402
 from mjxvine.evaluation import choice, paper, policies, starts  # noqa: E402
-from mjxvine.config import load_config, replace  # noqa: E402
+from mjxvine.config import Config, load_config, replace  # noqa: E402
 from mjxvine.env import training_env  # noqa: E402
 from mjxvine.worlds import make_world  # noqa: E402
 
@@ -120,7 +120,8 @@ RULES = {
                                          -r["pool_noise1"]["mae_m"]),
     # the choice's order (mjxvine.evaluation.choice.rank), over every scored policy (not
     # its top candidates only)
-    "validation successes, -MAE": choice.rank,
+    "validation: the bar, then -MAE": lambda r: choice.rank(
+        r, Config().train.select_success_bar),
 }
 
 

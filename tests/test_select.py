@@ -52,7 +52,8 @@ def test_the_trainer_chooses_on_the_validation_world(selected_run):
     assert v["success"] == v["worlds"]["100"]["success"] + sum(
         sum(n.values()) for n in v["noise"].values())
     assert c["trainer"]["eval_mae_m"] == pytest.approx(evals[c["env_steps"]]["eval_mae_m"])
-  best = max(record["candidates"], key=lambda c: choice.rank(c["validation"]))
+  bar = load_config(run / "config.yaml").train.select_success_bar
+  best = max(record["candidates"], key=lambda c: choice.rank(c["validation"], bar))
   assert record["selected"] == best["env_steps"] == row["selected_env_steps"]
   kept = run / "eval_policies" / f"env{record['selected']}.npz"
   assert (run / "selected.npz").read_bytes() == kept.read_bytes()
@@ -69,11 +70,31 @@ def test_a_run_dir_means_its_selected_policy(selected_run):
   assert "checkpoints" in item.parts
 
 
-def test_rank_orders_successes_then_mae():
-  a = {"success": 10, "mae_m": 0.05}
-  assert choice.rank(a) > choice.rank({"success": 9, "mae_m": 0.01})
-  assert choice.rank(a) > choice.rank({"success": 10, "mae_m": 0.06})
-  assert choice.rank({"success": 0, "mae_m": None}) < choice.rank({"success": 0, "mae_m": 1.0})
+def _scores(world_success: int, noise8: tuple, noise10: tuple, mae) -> dict:
+  """Validation scores of one world of 20 runs and the noise rows at factors 8 and 10."""
+  noise = {"8.0": dict(zip(("1F", "4F"), noise8)), "10.0": dict(zip(("1F", "4F"), noise10))}
+  return {"worlds": {"100": {"success": world_success, "episodes": 20}}, "noise": noise,
+          "success": world_success + sum(noise8) + sum(noise10), "mae_m": mae}
+
+
+def test_rank_puts_the_bar_first_then_the_lower_mae():
+  bar = 0.95
+  every = _scores(20, (3, 3), (3, 3), 0.09)       # drives every run, 9 cm off centre
+  paper_noise = _scores(19, (2, 3), (0, 0), 0.04)  # 19/20 and the paper's noise test
+  assert choice.meets_bar(every, bar) and choice.meets_bar(paper_noise, bar)
+  assert choice.rank(paper_noise, bar) > choice.rank(every, bar)  # both meet it: MAE
+  # below the bar: a world at 18/20 (90 %), or the curved noise row short of the paper's at 8
+  short = [_scores(18, (3, 3), (3, 3), 0.01), _scores(20, (3, 2), (3, 3), 0.01)]
+  for s in short:
+    assert not choice.meets_bar(s, bar)
+    assert choice.rank(every, bar) > choice.rank(s, bar)
+  # among those below it, the successes, then the lower MAE; no MAE ranks last
+  assert choice.rank(short[1], bar) > choice.rank(short[0], bar)
+  assert choice.rank(_scores(18, (3, 3), (3, 3), 0.05), bar) < choice.rank(short[0], bar)
+  assert choice.rank(_scores(0, (0, 0), (0, 0), None), bar) < choice.rank(
+      _scores(0, (0, 0), (0, 0), 1.0), bar)
+  # bar 0: the noise rows still ask the paper's successes
+  assert not choice.meets_bar(_scores(0, (1, 3), (0, 0), 0.01), 0.0)
 
 
 def test_fresh_start_score_orders_the_weaker_direction_then_mae():

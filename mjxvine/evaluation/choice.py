@@ -5,8 +5,11 @@ Two orders, higher is better:
   * `fresh_start_score`: the trainer's fresh-start evaluations (`starts`): the weaker
     direction's success, then the lower MAE (checkpoints/best, each member's best, the
     candidates here);
-  * `rank`: validated candidates: the successes over the validation protocol, then the
-    lower MAE.
+  * `rank`: validated candidates: those that meet the test targets' bar on the validation
+    protocol (`meets_bar`) by the lower MAE, then the others by their successes, then
+    the lower MAE. Offset decides among the policies that drive: without the bar, a
+    policy that drove one more noise run at factor 10 (where the paper drives none)
+    would win at any offset.
 
 The validation protocol: every lane-direction of `train.select_worlds` test-kind worlds of
 seeds `train.select_world_seed` and up, `train.select_runs` runs each, at
@@ -41,11 +44,28 @@ def fresh_start_score(scores: dict) -> tuple:
           -scores["eval_mae_m"])
 
 
-def rank(scores: dict) -> tuple:
-  """Order of validated candidates (`score_policy`), higher is better: the successes, then
-  the lower MAE (no MAE ranks last)."""
+def meets_bar(scores: dict, bar: float) -> bool:
+  """Whether validated scores (`score_policy`) meet the bar the test targets set: at
+  least the fraction `bar` of the validation worlds' runs reach the EoR, and each noise
+  row succeeds at least as often as the paper's at every one of the paper's factors (a
+  factor the paper did not drive asks nothing)."""
+  worlds = scores["worlds"].values()
+  if sum(w["success"] for w in worlds) < bar * sum(w["episodes"] for w in worlds):
+    return False
+  for factor, rows in scores["noise"].items():
+    need = paper.PAPER_NOISE.get(float(factor), ())
+    if any(rows[f"{lane}{way}"] < n for (lane, way), n in zip(paper.noise_rows(), need)):
+      return False
+  return True
+
+
+def rank(scores: dict, bar: float) -> tuple:
+  """Order of validated candidates (`score_policy`), higher is better: those that meet
+  the bar (`meets_bar`) first, by the lower MAE; the others by their successes, then the
+  lower MAE (no MAE ranks last)."""
   mae = scores["mae_m"]
-  return scores["success"], -(mae if mae is not None else float("inf"))
+  lower_mae = -(mae if mae is not None else float("inf"))
+  return (1, lower_mae, 0) if meets_bar(scores, bar) else (0, scores["success"], lower_mae)
 
 
 # ---------------------------------------------------------------------------- a run's policies
@@ -180,14 +200,16 @@ def select(cfg: Config, run_dir: Path, say=print, member: int | None = None) -> 
   say(f"{who}choosing the best of {len(chosen)} evaluated policies "
       f"({', '.join(map(str, chosen))} env steps) on validation worlds "
       f"{record['protocol']['worlds']}...")
+  bar = cfg.train.select_success_bar
   for steps in chosen:
     scores = done.get(steps) or score_policy(cfg, kept[steps], worlds, cfg.train.select_runs,
                                              cfg.train.select_noise_factors)
     record["candidates"].append({"env_steps": steps, "trainer": evaluations[steps],
                                  "validation": scores})
     write_text(record_path, json.dumps(record, indent=1))  # resumable after each candidate
-    say(f"  {steps:>8} env steps: {summary(scores)}")
-  best = max(record["candidates"], key=lambda c: rank(c["validation"]))  # first of equals
+    meets = " (meets the bar)" if meets_bar(scores, bar) else ""
+    say(f"  {steps:>8} env steps: {summary(scores)}{meets}")
+  best = max(record["candidates"], key=lambda c: rank(c["validation"], bar))  # first of equals
   record["selected"] = best["env_steps"]
   write_bytes(selected_path, kept[best["env_steps"]].read_bytes())
   write_text(record_path, json.dumps(record, indent=1))
