@@ -41,6 +41,7 @@ SEEDS = tuple(f"jackal-native-seed{s}" for s in range(4))  # jackal.yaml
 SHIPPED = SEEDS[0]            # the run of models/jackal.npz
 BEFORE = "jackal-gaps-seed0"  # the policy shipped before it: jackal.yaml with `shift`
 GAPS = "`jackal-gaps`, the policy shipped before, seeds 0, 1, 2"  # its section
+BAR = Config().train.select_success_bar  # the choice's bar: no recipe sets another
 HELDOUT = (19, 20, 21)        # test worlds first evaluated after the shipped policy was chosen
 
 
@@ -325,49 +326,56 @@ def heldout_summary(name: str, worlds, *, mae_prefix: str = "MAE ") -> Check:
   return check
 
 
+def selected_candidate(run: str) -> dict:
+  """The entry of `selection.json`'s candidates that the run selected."""
+  s = record(f"{run}/selection.json")
+  return next(c for c in s["candidates"] if c["env_steps"] == s["selected"])
+
+
+def candidate_steps(run: str) -> str:
+  """"100k, 110k, 120k, 130k": the candidates' env steps, in the order of the record."""
+  return ", ".join(f"{c['env_steps'] // 1000}k"
+                   for c in record(f"{run}/selection.json")["candidates"])
+
+
 def chosen_validation(run: str) -> Check:
   """"66/72, MAE 0.023 m": the chosen candidate's successes on the validation worlds and
   their noise rows (`selection.json`), and its MAE."""
-  s = record(f"{run}/selection.json")
-  v = next(c for c in s["candidates"] if c["env_steps"] == s["selected"])["validation"]
+  v = selected_candidate(run)["validation"]
   return exact(f"{v['success']}/{v['episodes']}, MAE {f3(v['mae_m'])} m")
 
 
 def candidates(run: str) -> Check:
-  """"100k, 110k, 120k, 130k": the candidates' env steps, in the order of the record."""
-  return exact(", ".join(f"{c['env_steps'] // 1000}k"
-                         for c in record(f"{run}/selection.json")["candidates"]))
+  """`candidate_steps`, exactly."""
+  return exact(candidate_steps(run))
 
 
 def validation_scores(run: str) -> Check:
   """"72, 69, 69, 61; 0.040 m": each candidate's validation successes, then the selected
   one's MAE."""
   s = record(f"{run}/selection.json")
-  chosen = next(c for c in s["candidates"] if c["env_steps"] == s["selected"])
   return exact(", ".join(str(c["validation"]["success"]) for c in s["candidates"])
-               + f"; {f3(chosen['validation']['mae_m'])} m")
+               + f"; {f3(selected_candidate(run)['validation']['mae_m'])} m")
 
 
 def meeting_the_bar(run: str) -> Check:
   """"80k (0.047), 40k (0.076)": the candidates that meet the choice's bar
   (`choice.meets_bar`, the default bar: no recipe sets another) and their validation
   MAE, in the order of the record."""
-  bar = Config().train.select_success_bar
   return exact(", ".join(f"{c['env_steps'] // 1000}k ({f3(c['validation']['mae_m'])})"
                          for c in record(f"{run}/selection.json")["candidates"]
-                         if choice.meets_bar(c["validation"], bar)) or "none")
+                         if choice.meets_bar(c["validation"], BAR)) or "none")
 
 
 def test_every_recorded_choice_is_what_rank_chooses():
   """Each selection.json under docs/results selected what `choice.rank` selects today (the
   bar of today's default: records from before it have none), so a recipe beside its
   record still reproduces the policy it names."""
-  bar = Config().train.select_success_bar
   records = sorted(RESULTS.glob("**/selection.json"))
   assert len(records) >= 9
   for path in records:
     sel = json.loads(path.read_text())
-    best = max(sel["candidates"], key=lambda c: choice.rank(c["validation"], bar))
+    best = max(sel["candidates"], key=lambda c: choice.rank(c["validation"], BAR))
     assert best["env_steps"] == sel["selected"], path
 
 
@@ -630,8 +638,7 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
   out = {}
 
   # Training: jackal.yaml seed 0 with the native tower, timed end to end alone
-  sel = record(f"{SHIPPED}/selection.json")
-  chosen = next(c for c in sel["candidates"] if c["env_steps"] == sel["selected"])
+  sel, chosen = record(f"{SHIPPED}/selection.json"), selected_candidate(SHIPPED)
   e2e = (RESULTS / f"{BEFORE}/end-to-end/README.md").read_text()
   timed = _timed_end_to_end(SHIPPED)
   out[("Training", 0)] = {label: [check] for label, check in {
@@ -643,7 +650,7 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
       "env steps": timed["env steps"],
       "chosen checkpoint": contains(
           f"{thousands(sel['selected'])} env steps, of the candidates "
-          + ", ".join(f"{c['env_steps'] // 1000}k" for c in sel["candidates"]),
+          + candidate_steps(SHIPPED),
           f"drove {chosen['validation']['success']} of the {chosen['validation']['episodes']} "
           "validation runs"),
   }.items()}
