@@ -37,12 +37,14 @@ RESULTS = ROOT / "docs" / "results"
 REPRODUCTION = RESULTS / "reproduction.md"
 FACTORS = tuple(paper.PAPER_NOISE)  # the noise test's factors that the paper drove
 NSTEP = ("jackal-nstep-seed0", "jackal-nstep-seed1", "jackal-nstep-seed2")  # 3-step returns
-SEEDS = tuple(f"jackal-native-seed{s}" for s in range(4))  # jackal.yaml
+SEEDS = tuple(f"jackal-ln-seed{s}" for s in range(4))  # jackal.yaml
+NATIVE = tuple(f"jackal-native-seed{s}" for s in range(4))  # jackal.yaml without LayerNorm
 SHIPPED = SEEDS[0]            # the run of models/jackal.npz
-BEFORE = "jackal-gaps-seed0"  # the policy shipped before it: jackal.yaml with `shift`
-GAPS = "`jackal-gaps`, the policy shipped before, seeds 0, 1, 2"  # its section
+BEFORE = NATIVE[0]            # the policy shipped before it
+GAPS = "`jackal-gaps`, shipped before `jackal-native`, seeds 0, 1, 2"  # its section
+NATIVE_SECTION = "`jackal-native`, the policy shipped before, seeds 0, 1, 2, 3"
 BAR = Config().train.select_success_bar  # the choice's bar: no recipe sets another
-HELDOUT = (19, 20, 21)        # test worlds first evaluated after the shipped policy was chosen
+HELDOUT = (22, 23, 24)        # test worlds first evaluated after the shipped policy was chosen
 
 
 # --- records --------------------------------------------------------------------------------
@@ -478,11 +480,11 @@ def _joined(*columns: dict) -> dict:
 
 def readme_spec() -> dict[str, dict]:
   """README's results table: row (first cell) -> column -> check or reason."""
-  end_to_end = (RESULTS / f"{BEFORE}/end-to-end/README.md").read_text()
+  end_to_end = (RESULTS / "jackal-gaps-seed0/end-to-end/README.md").read_text()
   total = re.search(r"the whole command\*\* \| \*\*(\d+) min \d+ s\*\*", end_to_end).group(1)
   cpu_camera = record("cpu-hour/config.yaml")["camera"]
   gaps = ("jackal-gaps-seed0", "jackal-gaps-seed1", "jackal-gaps-seed2")
-  assert {_max_minutes(r) for r in gaps} == {_max_minutes(BEFORE)}
+  assert len({_max_minutes(r) for r in gaps}) == 1
   return {
       "the paper's SAC agent": {
           "world 0: success": PAPER_SUCCESS, "MAE / RMSE m": exact(f"{P[0]:.3f} / {P[1]:.3f}"),
@@ -496,17 +498,17 @@ def readme_spec() -> dict[str, dict]:
       "`jackal.yaml`, seeds 1, 2, 3": {
           **_joined(*(_readme_suite(f"{run}/suite") for run in SEEDS[1:])),
           "wall-clock": exact("shared")},
-      "`jackal-gaps` (`shift` tower), seeds 0, 1, 2: seed 0 shipped before": {
+      "`jackal-native` (no LayerNorm), seeds 0-3: seed 0 shipped before": {
+          **_joined(*(_readme_suite(f"{run}/suite") for run in NATIVE)),
+          "wall-clock": exact(minutes_seconds(record(f"{BEFORE}/record.json")["wall_s"])
+                              + " (seed 0, end to end)")},
+      "`jackal-gaps` (`shift` tower), seeds 0, 1, 2: seed 0 shipped before that": {
           **_joined(*(_readme_suite(f) for f in ("jackal-gaps-seed0/suite",
                                                  "jackal-gaps-seed1/suite-selected",
                                                  "jackal-gaps-seed2/suite-selected"))),
-          "wall-clock": exact(f"{total} min; {_max_minutes(BEFORE)} min of training each")},
-      "`jackal/recipe.yaml`, seed 0 (shipped before that)": {
+          "wall-clock": exact(f"{total} min; {_max_minutes(gaps[0])} min of training each")},
+      "`jackal/recipe.yaml`, seed 0 (shipped earlier)": {
           **_readme_suite("jackal/suite"), "wall-clock": exact(f"{_max_minutes('jackal')} min")},
-      "`jackal.yaml` with 3-step returns, seeds 0, 1, 2": {
-          **_joined(*(_readme_suite(f"{run}/suite") for run in NSTEP)),
-          "wall-clock": exact(minutes_seconds(record(f"{NSTEP[0]}/record.json")["wall_s"])
-                              + " (seed 0, end to end)")},
       # the release (mjxvine 0.1.0) is in no record: the image size is
       "`cpu.yaml` (at 40x40, mjxvine 0.1.0)": {
           **_readme_single("cpu-hour/results.json"), "trained on": MACHINE,
@@ -568,7 +570,7 @@ AGAINST = {  # row label of an "against the targets" table -> (column key, the p
     "Husky, lanes 1F and 4F, 3 runs": ("husky", PAPER_HUSKY),
     "validation worlds 100-102 and their noise rows (the choice's 72 runs)": (
         "validation", exact("-")),
-    "held-out test worlds 19, 20, 21 ([below](#held-out-test-worlds-19-20-21))": (
+    "held-out test worlds 22, 23, 24 ([below](#held-out-test-worlds-22-23-24))": (
         "heldout", exact("-")),
 }
 SEED_ROWS = {  # row label of a seeds table -> column key
@@ -639,14 +641,12 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
 
   # Training: jackal.yaml seed 0 with the native tower, timed end to end alone
   sel, chosen = record(f"{SHIPPED}/selection.json"), selected_candidate(SHIPPED)
-  e2e = (RESULTS / f"{BEFORE}/end-to-end/README.md").read_text()
   timed = _timed_end_to_end(SHIPPED)
   out[("Training", 0)] = {label: [check] for label, check in {
       "command": COMMAND, "device": MACHINE, "run record": NAMES, "seeds": WHICH,
       "the policy shipped before": WHICH,
       "wall-clock": both(timed["wall-clock"], contains(
-          re.search(r"the whole command\*\* \| \*\*([^*]+)\*\*", e2e).group(1)
-          + " with `shift`")),
+          minutes_seconds(record(f"{BEFORE}/record.json")["wall_s"]) + " without the LayerNorm")),
       "env steps": timed["env steps"],
       "chosen checkpoint": contains(
           f"{thousands(sel['selected'])} env steps, of the candidates "
@@ -663,8 +663,12 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
 
   # Seeds of jackal.yaml
   columns = [{**_chosen_column(run), "bar": meeting_the_bar(run)} for run in SEEDS]
-  out[("Seeds", 0)] = _seeds([*CHOSEN_ROWS[:2], "meeting the bar (validation MAE, m)",
-                              *CHOSEN_ROWS[2:]], *columns)
+  bar_rows = [*CHOSEN_ROWS[:2], "meeting the bar (validation MAE, m)", *CHOSEN_ROWS[2:]]
+  out[("Seeds", 0)] = _seeds(bar_rows, *columns)
+
+  # jackal-native, shipped before: its seeds
+  columns = [{**_chosen_column(run), "bar": meeting_the_bar(run)} for run in NATIVE]
+  out[(NATIVE_SECTION, 0)] = _seeds(bar_rows, *columns)
 
   # jackal-gaps, shipped before: its training, timed end to end on a second run
   t = _training("jackal-gaps-seed0")
@@ -775,9 +779,12 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
       ("Held-out test worlds 13, 14, 15", (13, 14, 15), {
           "`jackal-gaps` seed 0 (shipped then)": "jackal-gaps-seed0",
           "`jackal/recipe.yaml` seed 0 (shipped before)": "jackal-seed0"}),
-      ("Held-out test worlds 19, 20, 21", HELDOUT, {
+      ("Held-out test worlds 19, 20, 21", (19, 20, 21), {
+          "`jackal-native` seed 0 (shipped then)": BEFORE,
+          "`jackal-gaps` seed 0 (shipped before it)": "jackal-gaps-seed0"}),
+      ("Held-out test worlds 22, 23, 24", HELDOUT, {
           "`models/jackal.npz` (`jackal.yaml` seed 0)": SHIPPED,
-          "`jackal-gaps` seed 0 (shipped before)": BEFORE})):
+          "`jackal-native` seed 0 (shipped before)": BEFORE})):
     out[(heading, 0)] = {
         label: [*(heldout_cell(name, w) for w in worlds), heldout_note(name, worlds)]
         for label, name in policies.items()}
