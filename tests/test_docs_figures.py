@@ -661,14 +661,11 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
               "heldout": heldout_summary(run, HELDOUT)} for run in (SHIPPED, BEFORE)]
   out[("Against the targets", 0)] = _against(list(AGAINST)[:3] + list(AGAINST)[4:], *columns)
 
-  # Seeds of jackal.yaml
-  columns = [{**_chosen_column(run), "bar": meeting_the_bar(run)} for run in SEEDS]
+  # Seeds of jackal.yaml, and of jackal-native, shipped before
   bar_rows = [*CHOSEN_ROWS[:2], "meeting the bar (validation MAE, m)", *CHOSEN_ROWS[2:]]
-  out[("Seeds", 0)] = _seeds(bar_rows, *columns)
-
-  # jackal-native, shipped before: its seeds
-  columns = [{**_chosen_column(run), "bar": meeting_the_bar(run)} for run in NATIVE]
-  out[(NATIVE_SECTION, 0)] = _seeds(bar_rows, *columns)
+  for heading, runs in (("Seeds", SEEDS), (NATIVE_SECTION, NATIVE)):
+    out[(heading, 0)] = _seeds(bar_rows, *({**_chosen_column(run), "bar": meeting_the_bar(run)}
+                                           for run in runs))
 
   # jackal-gaps, shipped before: its training, timed end to end on a second run
   t = _training("jackal-gaps-seed0")
