@@ -39,6 +39,7 @@ FACTORS = tuple(paper.PAPER_NOISE)  # the noise test's factors that the paper dr
 NSTEP = ("jackal-nstep-seed0", "jackal-nstep-seed1", "jackal-nstep-seed2")  # 3-step returns
 SEEDS = tuple(f"jackal-ln-seed{s}" for s in range(4))  # jackal.yaml
 NATIVE = tuple(f"jackal-native-seed{s}" for s in range(4))  # jackal.yaml without LayerNorm
+BATCH128 = tuple(f"jackal-b128-seed{s}" for s in (1, 2, 3))  # jackal.yaml, batch 128, 4 steps
 SHIPPED = SEEDS[0]            # the run of models/jackal.npz
 BEFORE = NATIVE[0]            # the policy shipped before it
 GAPS = "`jackal-gaps`, shipped before `jackal-native`, seeds 0, 1, 2"  # its section
@@ -559,6 +560,71 @@ def _suite_column(report: dict, *, every: bool = False) -> dict:
       "husky": husky(report)}
 
 
+# The shipped recipe's targets (the seeds tables' target column): world 0 (successes of
+# 50, MAE m), each of worlds 1-3 (the same), the noise test at least the paper's, the
+# Husky every run at most the paper's MAE.
+WORLD0_TARGET, WORLDS123_TARGET = (49, 0.06), (48, 0.08)
+
+
+def meets_targets(report: dict) -> bool:
+  """Whether a suite report meets every target of the shipped recipe."""
+  for w in paper.SUITE_WORLDS:
+    need, mae = WORLD0_TARGET if w == 0 else WORLDS123_TARGET
+    o = overall(report, w)
+    if o["success"] < need or o["mae_m_rows"] is None or o["mae_m_rows"] > mae:
+      return False
+  noise_ok = all(noise_runs(report, lane)[i] >= paper.PAPER_NOISE[k][j]
+                 for j, lane in enumerate(("1F", "4F")) for i, k in enumerate(FACTORS))
+  husky_ok = all(report["robots"][f"husky_{lane}"]["success"] == paper.ROBOT_RUNS
+                 and report["robots"][f"husky_{lane}"]["mae_m"] <= h[1]
+                 for lane, h in zip(("1F", "4F"), _H))
+  return noise_ok and husky_ok
+
+
+def config_changes(run: str, base: str = f"{BEFORE}/config.yaml") -> set[str]:
+  """"`sac.n_step: 3`" for each setting of `run`'s config.yaml that differs from `base`'s
+  in what is trained (the worlds, robot, camera, env, SAC and the env-step budget; not the
+  seed, the evaluations or the choice's settings, which some records predate)."""
+  def flat(doc, prefix=""):
+    for k, v in doc.items():
+      if isinstance(v, dict):
+        yield from flat(v, f"{prefix}{k}.")
+      else:
+        yield f"{prefix}{k}", v
+  a, b = dict(flat(record(f"{run}/config.yaml"))), dict(flat(record(base)))
+  return {f"`{k}: {yaml.safe_dump(v, default_flow_style=True).strip().removesuffix(chr(10) + '...')}`"
+          for k, v in a.items() if b.get(k) != v
+          and (k.split(".")[0] in ("world", "robot", "camera", "env", "sac")
+               or k == "train.total_env_steps")}
+
+
+def lever_row(runs: tuple[str, ...]) -> list:
+  """A row of the levers table: checks of its change, tower, seeds, the seeds that meet
+  every target, world 0's MAE and the test worlds' successes per seed, the wall-clocks."""
+  reports = [suite(f"{run}/suite") for run in runs]
+  seeds = [record(f"{run}/config.yaml")["train"]["seed"] for run in runs]
+  met = [s for s, r in zip(seeds, reports) if meets_targets(r)]
+  changes = set.union(*map(config_changes, runs))
+  towers = {record(f"{run}/record.json")["tower"] for run in runs}
+  def change(cell):
+    named = set(re.findall(r"`[^`]+`", cell))
+    assert named == changes, f"{cell!r}: the records change {sorted(changes)}"
+  return [
+      change, exact(" ".join(towers)), exact(", ".join(map(str, seeds))),
+      exact((", ".join(map(str, met)) or "none") + f" ({len(met)} of {len(runs)})"),
+      exact(", ".join("n/a" if overall(r, 0)["mae_m_rows"] is None
+                      else f3(overall(r, 0)["mae_m_rows"]) for r in reports)),
+      exact(", ".join(str(sum(overall(r, w)["success"] for w in paper.SUITE_WORLDS))
+                      for r in reports)),
+      exact(", ".join(f"{record(f'{run}/record.json')['wall_s'] / 60:.1f}" for run in runs))]
+
+
+LEVERS = {  # the levers table of reproduction.md: row label -> its seeds' records
+    "`jackal-native`, shipped before": NATIVE, "3-step returns": NSTEP,
+    "LayerNorm in the critics: `jackal.yaml`, shipped": SEEDS,
+    "LayerNorm, batch 128, 4 gradient steps": BATCH128}
+
+
 AGAINST = {  # row label of an "against the targets" table -> (column key, the paper's cell)
     "test world 0: success": ("w0", PAPER_SUCCESS),
     "test world 0: MAE / RMSE (mean of the rows)": ("w0 mae rmse", PAPER_MAE_RMSE),
@@ -666,6 +732,12 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
   for heading, runs in (("Seeds", SEEDS), (NATIVE_SECTION, NATIVE)):
     out[(heading, 0)] = _seeds(bar_rows, *({**_chosen_column(run), "bar": meeting_the_bar(run)}
                                            for run in runs))
+
+  # the levers tried on the shipped recipe; batch 128 with LayerNorm, its seeds
+  out[("Levers tried on the shipped recipe", 0)] = {
+      label: lever_row(runs) for label, runs in LEVERS.items()}
+  out[("A batch of 128 on the shipped recipe, seeds 1, 2, 3", 0)] = _seeds(
+      bar_rows, *({**_chosen_column(run), "bar": meeting_the_bar(run)} for run in BATCH128))
 
   # jackal-gaps, shipped before: its training, timed end to end on a second run
   t = _training("jackal-gaps-seed0")
