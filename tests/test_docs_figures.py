@@ -574,11 +574,13 @@ def meets_targets(report: dict) -> bool:
     o = overall(report, w)
     if o["success"] < need or o["mae_m_rows"] is None or o["mae_m_rows"] > mae:
       return False
-  noise_ok = all(noise_runs(report, lane)[i] >= paper.PAPER_NOISE[k][j]
-                 for j, lane in enumerate(("1F", "4F")) for i, k in enumerate(FACTORS))
-  husky_ok = all(report["robots"][f"husky_{lane}"]["success"] == paper.ROBOT_RUNS
-                 and report["robots"][f"husky_{lane}"]["mae_m"] <= h[1]
-                 for lane, h in zip(("1F", "4F"), _H))
+  noise_ok = all(report["noise"][str(k)][f"{lane}{way}"]["success"] >= n
+                 for k, need in paper.PAPER_NOISE.items()
+                 for (lane, way), n in zip(paper.noise_rows(), need))
+  robots = [(report["robots"][f"husky_{lane}{way}"], paper.PAPER_ROBOTS[("husky", f"{lane}{way}")])
+            for lane, way in paper.robot_rows()]
+  husky_ok = all(r["success"] == paper.ROBOT_RUNS and r["mae_m"] <= mae
+                 for r, (_, mae, _) in robots)
   return noise_ok and husky_ok
 
 
@@ -613,8 +615,7 @@ def lever_row(runs: tuple[str, ...]) -> list:
   return [
       change, exact(" ".join(towers)), exact(", ".join(map(str, seeds))),
       exact((", ".join(map(str, met)) or "none") + f" ({len(met)} of {len(runs)})"),
-      exact(", ".join("n/a" if overall(r, 0)["mae_m_rows"] is None
-                      else f3(overall(r, 0)["mae_m_rows"]) for r in reports)),
+      exact(", ".join(f3(overall(r, 0)["mae_m_rows"]) for r in reports)),
       exact(", ".join(str(sum(overall(r, w)["success"] for w in paper.SUITE_WORLDS))
                       for r in reports)),
       exact(", ".join(f"{record(f'{run}/record.json')['wall_s'] / 60:.1f}" for run in runs))]
