@@ -192,7 +192,13 @@ class SACConfig:
                    "rewards of up to n consecutive steps of an episode, then the bootstrapped "
                    "value (uncorrected for the policy's change, as in DrQ-v2; 1: the paper's "
                    "one-step target)")
-  tau: float = _f(5e-3, 0.0, 1.0)
+  tau: float = _f(5e-3, 0.0, 1.0, doc="the target critics' Polyak rate per gradient step")
+  tau_late: float = _f(0.0, 0.0, 1.0, doc="the target critics' rate from tau_late_from on "
+                       "(0: tau throughout); jackal.yaml slows the target five times "
+                       "once epsilon reaches its floor")
+  tau_late_from: float = _f(0.25, 0.0, 1.0, doc="fraction of train.total_env_steps from which "
+                            "tau_late applies (0.25: where the paper's epsilon reaches its "
+                            "floor)")
   alpha: float = _f(0.2, 0.0, 100.0, doc="entropy temperature (initial value if auto_alpha)")
   auto_alpha: bool = _f(False)
   target_entropy: float = _f(-2.0, -100.0, 100.0, doc="auto_alpha's target policy entropy, "

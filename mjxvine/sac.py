@@ -211,9 +211,9 @@ class SAC(NamedTuple):
   """SAC functions closed over the networks and config (all jit-able).
 
   init(key, obs) -> LearnerState                       obs: example with a batch axis
-  update(state, batch, key, lr_scale=1) -> (state, metrics)  one gradient step
-  update_from(state, buffer, key, lr_scale=1)          one step on cfg.batch_size samples
-  update_many(state, buffer, key, lr_scale=1)          cfg.grad_steps_per_iter of those,
+  update(state, batch, key, lr_scale=1, tau=None) -> (state, metrics)  one gradient step
+  update_from(state, buffer, key, lr_scale=1, tau=None) one step on cfg.batch_size samples
+  update_many(state, buffer, key, lr_scale=1, tau=None) cfg.grad_steps_per_iter of those,
                                                         with keys split(key, G), metrics
                                                         averaged
   act(actor_params, obs, key) -> action (..., A)       stochastic (squashed sample)
@@ -318,9 +318,10 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
         alpha_opt_state=opt.init(log_alpha), log_alpha=log_alpha,
         step=jnp.zeros((), jnp.int32), policy_params=jax.tree.map(jnp.copy, actor_params))
 
-  def update(state: LearnerState, batch: Transition, key: jax.Array, lr_scale=1.0):
+  def update(state: LearnerState, batch: Transition, key: jax.Array, lr_scale=1.0, tau=None):
     """One gradient step; `lr_scale` multiplies the actor's and critics' learning rate
-    (`learning_rate_scale`: Adam's step is linear in it)."""
+    (`learning_rate_scale`: Adam's step is linear in it); `tau`, the target critics' rate
+    (`target_rate`), is cfg.tau when None."""
     k_critic, k_actor = jax.random.split(key)
     scaled = lambda updates: jax.tree.map(lambda u: u * lr_scale, updates)
     alpha = jnp.exp(state.log_alpha)
@@ -349,7 +350,8 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
 
     new_state = LearnerState(
         actor_params=actor_params, critic_params=critic_params,
-        target_critic_params=polyak(state.target_critic_params, critic_params, cfg.tau),
+        target_critic_params=polyak(state.target_critic_params, critic_params,
+                                    cfg.tau if tau is None else tau),
         actor_opt_state=actor_opt_state, critic_opt_state=critic_opt_state,
         alpha_opt_state=alpha_opt_state, log_alpha=log_alpha, step=state.step + 1,
         policy_params=(polyak(state.policy_params, actor_params, cfg.actor_ema_tau)
@@ -361,14 +363,16 @@ def make_sac(nets: nw.SACNetworks, cfg: SACConfig,
     }
     return new_state, metrics
 
-  def update_from(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):
+  def update_from(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0,
+                  tau=None):
     k_sample, k_update = jax.random.split(key)
     batch = augment(sample(buffer, k_sample, cfg.batch_size, cfg.n_step, cfg.gamma),
                     k_sample, cfg, mirror)
-    return update(state, shard_batch(batch), k_update, lr_scale)
+    return update(state, shard_batch(batch), k_update, lr_scale, tau)
 
-  def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0):
-    state, metrics = jax.lax.scan(lambda st, k: update_from(st, buffer, k, lr_scale), state,
+  def update_many(state: LearnerState, buffer: "ReplayBuffer", key: jax.Array, lr_scale=1.0,
+                  tau=None):
+    state, metrics = jax.lax.scan(lambda st, k: update_from(st, buffer, k, lr_scale, tau), state,
                                   jax.random.split(key, cfg.grad_steps_per_iter),
                                   unroll=unroll)
     return state, jax.tree.map(jnp.mean, metrics)
@@ -421,3 +425,14 @@ def learning_rate_scale(cfg: SACConfig, env_steps: jax.Array, total_env_steps) -
   `cfg.lr_end_fraction` at `total_env_steps`, then held (1 throughout by default)."""
   done = jnp.minimum(jnp.asarray(env_steps, jnp.float32) / total_env_steps, 1.0)
   return 1.0 - (1.0 - cfg.lr_end_fraction) * done
+
+
+def target_rate(cfg: SACConfig, env_steps: jax.Array, total_env_steps) -> jax.Array | float:
+  """The target critics' Polyak rate after `env_steps` env steps summed over all envs:
+  `cfg.tau`, then `cfg.tau_late` from `cfg.tau_late_from` x `total_env_steps` on. With
+  tau_late 0 it is the Python float cfg.tau, so that runs without the switch compile as
+  before."""
+  if not cfg.tau_late:
+    return cfg.tau
+  late = jnp.asarray(env_steps, jnp.float32) >= cfg.tau_late_from * total_env_steps
+  return jnp.where(late, jnp.float32(cfg.tau_late), jnp.float32(cfg.tau))

@@ -533,6 +533,30 @@ def test_learning_rate_decays_linearly_over_the_budget(tiny):
   assert step(0.25) == pytest.approx(0.25 * step(1.0), rel=1e-4)
 
 
+def test_target_rate_switches_to_tau_late_and_moves_the_target_critics_by_it(tiny):
+  """`tau_late`: the target critics' rate is tau before `tau_late_from` of the budget and
+  tau_late from there on (off by default: cfg.tau, a Python float); an update's target
+  critics move by the rate it is given."""
+  total = 16_000
+  late = SACConfig(tau=0.005, tau_late=0.001, tau_late_from=0.25)
+  assert sac.target_rate(SACConfig(tau=0.005), 15_000, total) == 0.005
+  assert float(sac.target_rate(late, 3_999, total)) == pytest.approx(0.005)
+  assert float(sac.target_rate(late, 4_000, total)) == pytest.approx(0.001)
+  assert float(sac.target_rate(late, 2 * total, total)) == pytest.approx(0.001)
+  nets, _, _, _, batch, _ = tiny
+  agent = sac.make_sac(nets, SACConfig(learning_rate=1e-2))
+  state = jax.jit(agent.init)(jax.random.PRNGKey(1), batch.obs)
+  # a target apart from the critics, so that the Polyak step is not zero
+  state = state.replace(target_critic_params=jax.tree.map(jnp.zeros_like,
+                                                          state.target_critic_params))
+  update = jax.jit(agent.update)
+  for tau in (0.001, 0.25):
+    new, _ = update(state, batch, jax.random.PRNGKey(2), 1.0, jnp.float32(tau))
+    for t, c in zip(jax.tree.leaves(new.target_critic_params),
+                    jax.tree.leaves(new.critic_params)):
+      np.testing.assert_allclose(t, tau * c, rtol=1e-5, atol=1e-9)
+
+
 def test_policy_params_are_the_actor_or_its_polyak_average(tiny):
   """`policy_params` (evaluated and exported) follow the learning actor by default, and
   with `actor_ema_tau` move that fraction of the way towards it every step."""

@@ -64,7 +64,7 @@ def test_metadata_is_the_config_that_trained_it():
   assert meta["conv_tower"].startswith("native (")
   file_cfg, _ = policy_config(MODEL, overrides=["sac.conv_impl=auto"])
   assert to_dict(file_cfg) == to_dict(cfg)
-  record = ROOT / "docs" / "results" / "jackal-ln-seed0" / "metrics.jsonl"
+  record = ROOT / "docs" / "results" / "jackal-taulate-seed0" / "metrics.jsonl"
   assert json.loads(record.read_text().splitlines()[-1])["env_steps"] == cfg.train.total_env_steps
   assert meta["env_steps"] == json.loads(
       (record.parent / "selection.json").read_text())["selected"]

@@ -148,22 +148,27 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     """This iteration's learning-rate factor (`sac.learning_rate_scale`)."""
     return sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)
 
+  def tau(ts: TrainState):
+    """This iteration's target-critic rate (`sac.target_rate`)."""
+    return sac_lib.target_rate(cfg.sac, ts.env_steps, ts.budget)
+
   def learn_step(ts: TrainState, key: jax.Array):
     """One gradient step on a replay batch: `key` is one of split(k_update, G)."""
-    learner, metrics = sac.update_from(ts.learner, ts.buffer, key, lr_scale(ts))
+    learner, metrics = sac.update_from(ts.learner, ts.buffer, key, lr_scale(ts), tau(ts))
     return ts.replace(learner=learner), metrics
 
   def learn_steps(ts: TrainState, k_update: jax.Array):
     """The iteration's G gradient steps in one program (`sac.update_many`, as `iteration`
     takes them), with the keys of G `learn_step`s; metrics averaged over them."""
-    learner, metrics = sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts))
+    learner, metrics = sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts), tau(ts))
     return ts.replace(learner=learner), metrics
 
   def iteration(ts: TrainState, _):
     """collect, then G gradient steps if due (lax.cond): the device path."""
     ts, k_update, learn = collect(ts)
     learner, metrics = jax.lax.cond(
-        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts)),
+        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts),
+                                       tau(ts)),
         lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
     metrics["learning"] = learn.astype(jp.float32)
     return ts.replace(learner=learner), metrics
@@ -176,6 +181,7 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     out = {k: jp.sum(v * w) for k, v in metrics.items()}
     out["eps"] = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
     out["lr_scale"] = lr_scale(ts)
+    out["tau"] = jp.asarray(tau(ts), jp.float32)
     out["alpha"] = jp.exp(ts.learner.log_alpha)
     out["finite"] = _all_finite(ts.learner)
     return ts, out
