@@ -2,7 +2,11 @@
 
 Every field carries its allowed range (or choices) in its metadata; `load_config`
 rejects unknown keys, wrong types and out-of-range values with one line naming the
-key. Defaults are the paper's setting (docs/design.md).
+key and quoting at most a short prefix of the value (`short_repr`). Config files and
+`--set` values are YAML read by one set of rules (`robot_files.yaml_text`): at most 1 MiB,
+nested at most 16 deep, no anchors or aliases, scalars as YAML 1.2 reads them (`010` is
+10, `1:30` is not a number). Flags that stand for a key take its rule (`check_value`).
+Defaults are the paper's setting (docs/design.md).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from typing import Any, Sequence
 import yaml
 
 from mjxvine import robot_files
-from mjxvine.robot_files import ROBOTS, RobotSpec
+from mjxvine.robot_files import ROBOTS, RobotSpec, clean, short_repr
 
 
 class ConfigError(ValueError):
@@ -60,15 +64,10 @@ class WorldConfig:
   terrain_amplitude_m: float = _f(0.05, 0.0, 0.5, doc="terrain bumps are +- this")
   slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient along the rows (+x), %")
   cross_slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient across the rows, %")
-  terrain_bump_m: float = _f(1.0, 0.1, 10.0, doc="grid of the random bumps")
-  terrain_cell_m: float = _f(0.25, 0.05, 2.0, doc="heightfield resolution")
-  terrain_margin_m: float = _f(4.0, 0.5, 20.0, doc="terrain beyond the outer plants")
-  plant_slots: int = _f(0, 0, 4096, doc="plant slots per world (0: as many as the batch needs)")
   train_seed: int = _f(0, 0, 2**31 - 1, doc="seed of the first train world of the pool")
   pool_size: int = _f(8, 1, 4096, doc="train worlds in the pool")
   train_files: str = _f("", doc="vineyard files (.geojson, .csv, comma-separated) whose "
                         "blocks join the pool of generated train worlds")
-  test_seed: int = _f(0, 0, 2**31 - 1)
 
 
 def robot_spec(name_or_path: str) -> RobotSpec:
@@ -99,6 +98,12 @@ class RobotConfig:
   wheel_kv: float = _f(1.0, 0.001, 100.0, doc="wheel velocity-servo gain per kg of robot, N m s / rad / kg")
   wheel_armature: float = _f(0.005, 0.0, 1.0, doc="wheel motor armature per kg of robot, kg m^2 / kg")
   wheel_friction: float = _f(0.8, 0.05, 5.0)
+
+  @property
+  def spec(self) -> RobotSpec:
+    """The robot `name` resolves to: body, wheels, camera mount (`robot_files.RobotSpec`,
+    read once per file). Every module takes the robot from here."""
+    return robot_spec(self.name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,37 +140,16 @@ class EnvConfig:
   reverse_reward: float = _f(-500.0, -1e5, 1e5)
   yaw_limit_deg: float = _f(85.0, 1.0, 180.0)
   success_radius_m: float = _f(0.4, 0.01, 5.0)
-  collision_margin_m: float = _f(0.05, 0.0, 1.0)
   pose_reset_every: int = _f(10, 1, 100000, doc="episodes between new start poses")
   start_yaw_jitter_deg: float = _f(10.0, 0.0, 90.0)
   start_lateral_jitter_m: float = _f(0.1, 0.0, 1.0)
-  start_along: tuple[float, float] = _f(
-      (0.0, 0.6), 0.0, 0.95, doc="training starts lie this fraction of the row length from "
-      "the lane's start in the travel direction, drawn uniformly (a random point along the "
-      "lane); the evaluation from fresh starts always draws from [0, 0.6] "
-      "(evaluation.starts.EVAL_START_ALONG)")
   yaw_reference: str = _f("start", choices=("start", "world"),
                           doc="the state's yaw: relative to the heading at the episode start "
                           "(a robot zeroing its IMU at the row entrance; this project's "
                           "default) or the world yaw (the paper's input)")
-  yaw_reference_jitter_deg: float = _f(20.0, 0.0, 180.0,
-                                       doc="yaw_reference=start: a random offset in +- this "
-                                       "added to the reference at every training episode "
-                                       "start, so that the relative yaw is not the heading "
-                                       "error of a straight row (0 in evaluation)")
-  yaw_offset_deg: float = _f(0.0, -180.0, 180.0, doc="yaw_reference=world: added to the world "
-                             "yaw of the state input (90 keeps the rows' two directions "
-                             "away from the +-pi wrap)")
   heading_reward: str = _f("paper", choices=("paper", "speed_weighted"),
                            doc="r_h as in the paper, or scaled by the forward speed / v_max "
                            "(no heading reward for standing still facing the EoR)")
-  heading_target: str = _f("eor", choices=("eor", "lane"),
-                           doc="the point r_h's angle phi is measured to: the end of the row "
-                           "(the paper) or the centreline heading_lookahead_m ahead of the "
-                           "robot (pays for driving on the centreline, not only towards the "
-                           "EoR)")
-  heading_lookahead_m: float = _f(2.0, 0.1, 50.0, doc="heading_target=lane: distance along "
-                                  "the centreline from the robot's nearest point, m")
   train_noise_factor: tuple[float, float] = _f(
       (0.0, 0.0), 0.0, 100.0, doc="training episodes draw their depth noise factor k "
       "from this range (domain randomisation; as train_noise_draw says); [0, 0]: "
@@ -175,30 +159,21 @@ class EnvConfig:
                              doc="how train_noise_factor's k is drawn: uniformly, or "
                              "log-uniformly (as many episodes in [1, 2] as in [5, 10]: "
                              "most see a usable image, some a near-blind one; needs lo > 0)")
-  start_directions: str = _f("both", choices=("both", "forward", "reverse"),
-                             doc="travel directions of random starts (forward: +x, world "
-                             "yaw near 0; reverse: yaw near +-pi, where the yaw input wraps)")
 
 
 @dataclasses.dataclass(frozen=True)
 class SACConfig:
   """Soft Actor-Critic (docs/design.md, SAC hyper-parameters)."""
   learning_rate: float = _f(2e-4, 1e-7, 1.0)
-  lr_end_fraction: float = _f(1.0, 0.0, 1.0, doc="the actor's and critics' learning rate "
-                              "decays linearly with env steps to this fraction of "
-                              "learning_rate at train.total_env_steps (1.0: constant)")
   gamma: float = _f(0.99, 0.0, 1.0)
   n_step: int = _f(1, 1, 64, doc="the critics learn from n-step returns: the discounted "
                    "rewards of up to n consecutive steps of an episode, then the bootstrapped "
                    "value (uncorrected for the policy's change, as in DrQ-v2; 1: the paper's "
                    "one-step target)")
   tau: float = _f(5e-3, 0.0, 1.0, doc="the target critics' Polyak rate per gradient step")
-  tau_late: float = _f(0.0, 0.0, 1.0, doc="the target critics' rate from tau_late_from on "
-                       "(0: tau throughout); jackal.yaml slows the target five times "
-                       "once epsilon reaches its floor")
-  tau_late_from: float = _f(0.25, 0.0, 1.0, doc="fraction of train.total_env_steps from which "
-                            "tau_late applies (0.25: where the paper's epsilon reaches its "
-                            "floor)")
+  tau_late: float = _f(0.0, 0.0, 1.0, doc="the target critics' rate from a quarter of "
+                       "train.total_env_steps on, where epsilon reaches its floor (0: tau "
+                       "throughout); jackal.yaml slows the target five times")
   alpha: float = _f(0.2, 0.0, 100.0, doc="entropy temperature (initial value if auto_alpha)")
   auto_alpha: bool = _f(False)
   target_entropy: float = _f(-2.0, -100.0, 100.0, doc="auto_alpha's target policy entropy, "
@@ -210,23 +185,15 @@ class SACConfig:
   replay_depth_dtype: str = _f("uint16", choices=("uint8", "uint16"),
                                doc="stored depth: uint8 (9.8 mm steps) fits 1e6 x 112^2 in 13 GB")
   warmup_steps: int = _f(10_000, 0, 1 << 30, doc="uniformly random env steps before learning")
-  eps_start: float = _f(1.0, 0.0, 1.0)
-  eps_decay: float = _f(0.992, 0.0, 1.0, doc="epsilon multiplier per episode of the budget")
-  eps_budget_episodes: float = _f(1500.0, 1.0, 1e9, doc="the budget train.total_env_steps "
-                                  "counts as this many episodes for epsilon's decay, over all "
-                                  "envs together: eps = max(eps_min, eps_start * eps_decay ** "
-                                  "(eps_budget_episodes * env_steps / total_env_steps)); the "
-                                  "paper's 1500 episodes reach the floor at 25 % of the budget")
+  eps_start: float = _f(1.0, 0.0, 1.0, doc="epsilon-greedy's initial probability of a "
+                        "uniform action; it decays as the paper's 0.992 per episode with "
+                        "the budget train.total_env_steps counted as 1500 episodes over all "
+                        "envs together, so that it reaches eps_min at the same fraction of "
+                        "the budget for any number of envs")
   eps_min: float = _f(0.05, 0.0, 1.0)
   hidden: int = _f(256, 1, 8192)
   conv_features: int = _f(32, 1, 1024)
-  log_std_min: float = _f(-20.0, -100.0, 0.0)
-  log_std_max: float = _f(2.0, -10.0, 10.0)
   grad_steps_per_iter: int = _f(1, 1, 1 << 16, doc="gradient steps per training iteration")
-  compute_dtype: str = _f("float32", choices=("float32", "bfloat16"),
-                          doc="dtype the convs and hidden layers compute in (bfloat16: "
-                          "mixed precision for accelerators; parameters, heads, losses and "
-                          "optimiser states stay float32)")
   actor_ema_tau: float = _f(0.0, 0.0, 1.0, doc="the actor that is evaluated, kept as best "
                             "and exported is a Polyak average of the learning actor, moved "
                             "by this rate every gradient step (0: the learning actor "
@@ -242,33 +209,9 @@ class SACConfig:
                             "left-right, with no steering bias, at twice the actor's cost; "
                             "used by the evaluations, the best-checkpoint choice and the "
                             "exported policy (exploration keeps the stochastic actor)")
-  conv_impl: str = _f("auto", choices=("auto", "xla", "shift", "native"),
-                      doc="how the learner computes the conv tower (the same parameters "
-                      "and numbers to float32 rounding; evaluation and export use XLA's): "
-                      "native = the whole tower as the hand-written CPU kernel "
-                      "(mjxvine.native, x86-64 Linux with a C++ compiler); shift = "
-                      "XLA's convs but the first as a sum of slices; auto = native on the "
-                      "CPU where it builds, else shift, and xla elsewhere")
-  image_shift_px: int = _f(0, 0, 16, doc="every sampled depth image (obs and next_obs, "
-                           "apart) is moved by a random whole-pixel offset of up to this "
-                           "many pixels along each axis, its edge values repeated into the "
-                           "border (DrQ's random shift): the conv towers learn from views a "
-                           "few pixels apart; acting and evaluation see the image as it is "
-                           "(0: off)")
-  actor_mean_init_scale: float = _f(1.0, 0.0, 10.0, doc="the actor's mean head starts "
-                                    "with its initial weights (LeCun normal) times this: "
-                                    "1 is flax's default; a small value starts every seed "
-                                    "at nearly the same action, the box's centre (0.25 m/s "
-                                    "straight ahead), instead of a turn that some "
-                                    "initialisations draw")
   critic_layer_norm: bool = _f(False, doc="LayerNorm before each hidden ReLU of the "
                                "critics (not the paper's; the actor, and so the exported "
                                "policy, unchanged)")
-  reuse_critic_features: bool = _f(False, doc="the actor loss reuses the critics' tower "
-                                    "features of obs from the critic loss and the critics "
-                                    "as they were before this step's update (as brax's SAC "
-                                    "does): 6 tower passes per gradient step instead of 8. "
-                                    "False: the actor loss re-runs the updated critics")
   reward_scale: float = _f(1.0, 1e-6, 1e6, doc="rewards are multiplied by this before the "
                            "replay (1: the paper; returns are logged unscaled)")
 
@@ -278,9 +221,13 @@ class TrainConfig:
   seed: int = _f(0, 0, 2**31 - 1)
   total_env_steps: int = _f(1_050_000, 1, 1 << 40)
   iters_per_chunk: int = _f(100, 1, 1 << 20, doc="iterations per chunk between host logs")
-  chunk_loop: str = _f("auto", choices=("auto", "scan", "host"),
-                       doc="a chunk as one lax.scan, or a host loop of jitted iterations "
-                       "(auto: host on CPU, where convs in loops are slow)")
+  conv_impl: str = _f("auto", choices=("auto", "xla", "shift", "native"),
+                      doc="how the learner computes the conv tower (the same parameters "
+                      "and numbers to float32 rounding; evaluation and export use XLA's): "
+                      "native = the whole tower as the hand-written CPU kernel "
+                      "(mjxvine.native, x86-64 Linux with a C++ compiler); shift = "
+                      "XLA's convs but the first as a sum of slices; auto = native on the "
+                      "CPU where it builds, else shift, and xla elsewhere")
   checkpoint_every_chunks: int = _f(10, 1, 1 << 20)
   save_replay: bool = _f(False)
   num_seeds: int = _f(1, 1, 1024)
@@ -304,25 +251,15 @@ class TrainConfig:
                                 "under 0.1 MB for the CPU configs' networks, 0.4 MB for the "
                                 "paper's), to compare checkpoint choices afterwards")
   select_worlds: int = _f(0, 0, 64, doc="choose the best checkpoint on this many "
-                          "validation worlds (test-kind worlds of seeds select_world_seed "
-                          "and up, never a test table's) among the train.select_candidates "
+                          "validation worlds (test-kind worlds of seeds 100 and up, never "
+                          "a test table's) among the train.select_candidates "
                           "best fresh-start evaluations, after training, for each member "
                           "(mjxvine.evaluation.choice; writes their policies as "
                           "train.keep_eval_policies does; 0: the best fresh-start "
                           "evaluation is the best checkpoint)")
-  select_world_seed: int = _f(100, 100, 2**31 - 1, doc="the first validation world's seed "
-                              "(test tables use seeds below 100)")
   select_candidates: int = _f(4, 1, 1024, doc="fresh-start evaluations scored on the "
                               "validation worlds: the best by the weaker direction's "
                               "success, then the lower MAE")
-  select_runs: int = _f(2, 1, 100, doc="runs per lane-direction of each validation world")
-  select_success_bar: float = _f(0.95, 0.0, 1.0, doc="the share of the validation worlds' "
-                                 "runs a candidate must drive to the EoR, its noise rows "
-                                 "at least the paper's, to be ranked by its MAE ahead of "
-                                 "the candidates that do not (they rank by successes)")
-  select_noise_factors: tuple[float, float] = _f(
-      (8.0, 10.0), 0.0, 100.0, doc="depth-noise factors at which rows 1F and 4F of the "
-      "first validation world are driven too, 3 runs each (as the noise test)")
   video: bool = _f(False, doc="the closing report films the best policy on the test world "
                    "(lanes 1F and 4R): MP4s in RUN/eval/videos/ (needs OpenGL and "
                    "imageio-ffmpeg, `pip install mjxvine[video]`; eval.runs_after_train >= 1)")
@@ -349,29 +286,36 @@ class Config:
   eval: EvalConfig = EvalConfig()
 
 
+def _yaml_value(key: str, text: str) -> Any:
+  """A `--set` value (or a string where a number was due) read as YAML, by the rules of
+  every YAML here (`robot_files.yaml_text`: YAML 1.2 scalars, no aliases)."""
+  return robot_files.yaml_text(text, f"{key} = {short_repr(text)}", ConfigError)
+
+
 def _coerce(key: str, value: Any, tp: Any, meta: dict) -> Any:
   """Converts `value` (from YAML or a `--set` string) to `tp`, checking its range."""
   origin = typing.get_origin(tp)
   if origin is tuple:
     if isinstance(value, str):
-      value = yaml.safe_load(value)
+      value = _yaml_value(key, value)
     item_types = typing.get_args(tp)
     if not isinstance(value, (list, tuple)) or len(value) != len(item_types):
-      raise ConfigError(f"{key} = {value!r}: expected a list of {len(item_types)} numbers")
+      raise ConfigError(f"{key} = {short_repr(value)}: expected a list of "
+                        f"{len(item_types)} numbers")
     out = tuple(_coerce(key, v, t, meta) for v, t in zip(value, item_types))
     if any(a > b for a, b in zip(out, out[1:])):
       raise ConfigError(f"{key} = {list(out)}: the range must be increasing [min, max]")
     return out
   if isinstance(value, str) and tp is not str:
-    value = yaml.safe_load(value)
+    value = _yaml_value(key, value)
   if tp is bool:
     if not isinstance(value, bool):
-      raise ConfigError(f"{key} = {value!r}: expected true or false")
+      raise ConfigError(f"{key} = {short_repr(value)}: expected true or false")
     return value
   if tp is int:
     if isinstance(value, bool) or not (isinstance(value, int) or
                                        (isinstance(value, float) and value.is_integer())):
-      raise ConfigError(f"{key} = {value!r}: expected an integer")
+      raise ConfigError(f"{key} = {short_repr(value)}: expected an integer")
     value = int(value)
   elif tp is float:
     if isinstance(value, str):  # YAML 1.1 reads "3e-4" (no dot) as a string
@@ -380,28 +324,87 @@ def _coerce(key: str, value: Any, tp: Any, meta: dict) -> Any:
       except ValueError:
         pass
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-      raise ConfigError(f"{key} = {value!r}: expected a number")
+      raise ConfigError(f"{key} = {short_repr(value)}: expected a number")
     value = float(value)
     if not math.isfinite(value):
-      raise ConfigError(f"{key} = {value!r}: expected a finite number")
+      raise ConfigError(f"{key} = {short_repr(value)}: expected a finite number")
   elif tp is str:
     value = str(value)
   lo, hi, choices = meta.get("lo"), meta.get("hi"), meta.get("choices")
   if choices is not None and value not in choices:
-    raise ConfigError(f"{key} = {value!r}: must be one of {', '.join(choices)}")
+    raise ConfigError(f"{key} = {short_repr(value)}: must be one of {', '.join(choices)}")
   if lo is not None and not (lo <= value <= hi):
-    raise ConfigError(f"{key} = {value!r}: must be in [{lo}, {hi}]")
+    raise ConfigError(f"{key} = {short_repr(value)}: must be in [{lo}, {hi}]")
   return value
+
+
+def check_value(key: str, value: Any) -> Any:
+  """`value` (a flag's text or number) as the config key `key` ("section.name") takes it:
+  converted and range-checked by the key's own rule, or ConfigError ("key = value: ...").
+  The flags that stand for a key go through it (`cli.key_type`): one rule for both."""
+  section, _, name = key.partition(".")
+  cls = typing.get_type_hints(Config)[section]
+  field = {f.name: f for f in dataclasses.fields(cls)}[name]
+  return _coerce(key, value, typing.get_type_hints(cls)[name], dict(field.metadata))
+
+
+# Keys that earlier releases had, with the value that kept their behaviour off (the
+# code's constant now). A config file or --set naming one is refused in one line; a run's
+# or a policy's own recorded config (`load_config(base=...)`) drops it at that value.
+RELEASE_WITH_REMOVED = "mjxvine 0.2.0 (commit df22916)"
+REMOVED_KEYS = {
+    "world.plant_slots": 0, "world.terrain_bump_m": 1.0, "world.terrain_cell_m": 0.25,
+    "world.terrain_margin_m": 4.0, "world.test_seed": 0,
+    "env.heading_target": "eor", "env.heading_lookahead_m": 2.0, "env.yaw_offset_deg": 0.0,
+    "env.yaw_reference_jitter_deg": 20.0, "env.start_along": [0.0, 0.6],
+    "env.start_directions": "both", "env.collision_margin_m": 0.05,
+    "sac.lr_end_fraction": 1.0, "sac.tau_late_from": 0.25, "sac.log_std_min": -20.0,
+    "sac.log_std_max": 2.0, "sac.compute_dtype": "float32", "sac.image_shift_px": 0,
+    "sac.actor_mean_init_scale": 1.0, "sac.reuse_critic_features": False,
+    "sac.eps_decay": 0.992, "sac.eps_budget_episodes": 1500.0,
+    "train.chunk_loop": "auto", "train.select_world_seed": 100, "train.select_runs": 2,
+    "train.select_success_bar": 0.95, "train.select_noise_factors": [8.0, 10.0],
+}
+MOVED_KEYS = {"sac.conv_impl": "train.conv_impl"}
+
+
+def _removed_key_error(key: str) -> ConfigError:
+  if key in MOVED_KEYS:
+    return ConfigError(f"{key}: renamed {MOVED_KEYS[key]} after {RELEASE_WITH_REMOVED}")
+  return ConfigError(f"{key}: removed after {RELEASE_WITH_REMOVED}, which has it "
+                     "(CHANGELOG.md, Removed: what to use instead)")
+
+
+def _recorded(base: dict) -> dict:
+  """A run's or a policy's recorded config with the keys of earlier releases dropped
+  (at the value that kept them off) or moved; ConfigError for one that was on."""
+  out = {s: dict(v) if isinstance(v, dict) else v for s, v in base.items()}
+  for key, off in REMOVED_KEYS.items():
+    section, name = key.split(".")
+    if isinstance(out.get(section), dict) and name in out[section]:
+      value = out[section].pop(name)
+      if value != off and not (isinstance(off, list) and list(value or ()) == off):
+        raise ConfigError(f"{key} = {short_repr(value)}: the run was trained with a key removed "
+                          f"after {RELEASE_WITH_REMOVED}, which reproduces it")
+  for key, new in MOVED_KEYS.items():
+    (section, name), (new_section, new_name) = key.split("."), new.split(".")
+    if isinstance(out.get(section), dict) and name in out[section]:
+      out.setdefault(new_section, {}).setdefault(new_name, out[section].pop(name))
+  return out
 
 
 def _build(cls, data: dict, prefix: str):
   if not isinstance(data, dict):
-    raise ConfigError(f"{prefix.rstrip('.') or 'config'}: expected a mapping, got {data!r}")
+    raise ConfigError(f"{prefix.rstrip('.') or 'config'}: expected a mapping, got "
+                      f"{short_repr(data)}")
   hints = typing.get_type_hints(cls)
   names = {f.name: f for f in dataclasses.fields(cls)}
   for key in data:
+    if key not in names and f"{prefix}{key}" in {**REMOVED_KEYS, **MOVED_KEYS}:
+      raise _removed_key_error(f"{prefix}{key}")
     if key not in names:
-      raise ConfigError(f"{prefix}{key}: unknown key (known: {', '.join(names)})")
+      raise ConfigError(f"{prefix}{clean(str(key), 80)}: unknown key (known: "
+                        f"{', '.join(names)})")
   kwargs = {}
   for name, field in names.items():
     tp, key = hints[name], prefix + name
@@ -413,7 +416,7 @@ def _build(cls, data: dict, prefix: str):
 
 
 def _check_cross_fields(cfg: Config) -> None:
-  robot = robot_spec(cfg.robot.name)
+  robot = cfg.robot.spec
   width = robot.width
   lo = cfg.world.inter_row_m[0]
   if lo - cfg.world.canopy_width_m[1] <= width:
@@ -436,7 +439,11 @@ def _check_cross_fields(cfg: Config) -> None:
   if abs(steps - round(steps)) > 1e-6:
     raise ConfigError(f"env.physics_dt = {cfg.env.physics_dt}: must divide env.control_dt "
                       f"= {cfg.env.control_dt}")
-  parse_sweep(cfg.train.sweep)
+  grid = parse_sweep(cfg.train.sweep)
+  members = cfg.train.num_seeds * math.prod(len(v) for v in grid.values())
+  if members > MAX_MEMBERS:
+    raise ConfigError(f"train.sweep: {members} members with train.num_seeds = "
+                      f"{cfg.train.num_seeds}; at most {MAX_MEMBERS} train at once")
   if cfg.train.video and cfg.eval.runs_after_train < 1:
     raise ConfigError("train.video = true: films the closing test-world runs, which need "
                       "eval.runs_after_train >= 1 (got 0)")
@@ -444,37 +451,33 @@ def _check_cross_fields(cfg: Config) -> None:
   if cfg.sac.n_step >= rows:
     raise ConfigError(f"sac.n_step = {cfg.sac.n_step}: must be below the steps per env "
                       f"that the replay holds (sac.buffer_size // env.num_envs = {rows})")
-  if cfg.sac.log_std_min >= cfg.sac.log_std_max:
-    raise ConfigError(f"sac.log_std_min = {cfg.sac.log_std_min}: must be < sac.log_std_max")
-  for key in ("mirror_augment", "mirror_average"):
-    if (getattr(cfg.sac, key) and cfg.env.yaw_reference == "world"
-        and cfg.env.yaw_offset_deg != 0.0):
-      raise ConfigError(f"sac.{key} = true: the mirror negates the yaw input, which "
-                        f"needs env.yaw_offset_deg = 0 with env.yaw_reference = world "
-                        f"(got {cfg.env.yaw_offset_deg})")
 
 
 # Hyper-parameters that a vmapped sweep may vary (they live in the learner state).
 SWEEPABLE = ("sac.learning_rate", "sac.alpha")
+MAX_MEMBERS = 1024  # seeds x sweep grid trained at once (as train.num_seeds' bound)
 
 
 def parse_sweep(text: str) -> dict[str, tuple[float, ...]]:
   """'sac.learning_rate=1e-4,1e-3; sac.alpha=0.1' -> {"sac.learning_rate": (1e-4, 1e-3),
-  "sac.alpha": (0.1,)}; raises ConfigError naming train.sweep on a bad entry."""
-  out = {}
+  "sac.alpha": (0.1,)}; raises ConfigError naming train.sweep on a bad entry. Entries of
+  one key combine their values ('sac.alpha=0.1; sac.alpha=0.2' is 'sac.alpha=0.1,0.2'), a
+  value given again is dropped (it would train the same member twice); different keys
+  make a grid."""
+  out: dict[str, tuple[float, ...]] = {}
   for item in filter(None, (x.strip() for x in text.split(";"))):
     key, _, values = item.partition("=")
     key = key.strip()
     if key not in SWEEPABLE:
-      raise ConfigError(f"train.sweep: {key!r} cannot be swept (sweepable: "
+      raise ConfigError(f"train.sweep: {short_repr(key)} cannot be swept (sweepable: "
                         f"{', '.join(SWEEPABLE)})")
     try:
       vals = tuple(float(v) for v in values.split(","))
     except ValueError:
-      raise ConfigError(f"train.sweep: {item!r}: expected {key}=v1,v2,...") from None
+      raise ConfigError(f"train.sweep: {short_repr(item)}: expected {key}=v1,v2,...") from None
     if not all(math.isfinite(v) and v > 0 for v in vals):
-      raise ConfigError(f"train.sweep: {item!r}: values must be positive numbers")
-    out[key] = vals
+      raise ConfigError(f"train.sweep: {short_repr(item)}: values must be positive numbers")
+    out[key] = tuple(dict.fromkeys(out.get(key, ()) + vals))
   return out
 
 
@@ -484,7 +487,7 @@ def _set_nested(data: dict, dotted: str, value: str) -> None:
   for p in parts[:-1]:
     node = node.setdefault(p, {})
     if not isinstance(node, dict):
-      raise ConfigError(f"{dotted}: {p} is not a section")
+      raise ConfigError(f"{clean(dotted, 80)}: {clean(p, 80)} is not a section")
   node[parts[-1]] = value
 
 
@@ -516,18 +519,21 @@ def resolve_config_path(path: str | Path) -> Path:
 
 def read_yaml(path: str | Path) -> dict:
   """The mapping of a YAML config file; ConfigError (naming the file) if missing or invalid.
-  `path` may also name a shipped experiment config (`resolve_config_path`)."""
+  `path` may also name a shipped experiment config (`resolve_config_path`). The file is
+  read by the rules of every YAML here (`robot_files.load_yaml`: at most 1 MiB, nested at
+  most 16 deep, no anchors or aliases, YAML 1.2 scalars)."""
   path = resolve_config_path(path)
+  shown = clean(str(path))
   if not path.is_file():
-    raise ConfigError(f"config file not found: {path} (shipped configs: "
+    raise ConfigError(f"config file not found: {shown} (shipped configs: "
                       f"{', '.join(packaged_configs())})")
-  data = robot_files.load_yaml(path, str(path), ConfigError, "config")
+  data = robot_files.load_yaml(path, shown, ConfigError, "config")
   if data is None:
     # An empty file is more likely a mistake than a wish for the defaults (a 112x112
     # run with a multi-GB replay): "{}" says the latter.
-    raise ConfigError(f"{path}: empty (write {{}} to train the defaults)")
+    raise ConfigError(f"{shown}: empty (write {{}} to train the defaults)")
   if not isinstance(data, dict):
-    raise ConfigError(f"{path}: expected a mapping of sections (world:, env:, sac:, ...), "
+    raise ConfigError(f"{shown}: expected a mapping of sections (world:, env:, sac:, ...), "
                       f"got a {type(data).__name__}")
   return data
 
@@ -563,12 +569,12 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (),
   """Loads a config: defaults <- `base` (a mapping, e.g. a run's own config.yaml) <- YAML
   file at `path` <- the robot file's camera and velocity values (RobotConfig) <-
   `overrides` ("section.key=value")."""
-  data: dict = _merged(copy.deepcopy(base or {}),
+  data: dict = _merged(_recorded(copy.deepcopy(base or {})),
                        read_yaml(path) if path is not None else {})
   sets = []
   for item in overrides:
     if "=" not in item:
-      raise ConfigError(f"--set {item!r}: expected section.key=value")
+      raise ConfigError(f"--set {short_repr(item)}: expected section.key=value")
     key, value = item.split("=", 1)
     sets.append((key.strip(), value.strip()))
   _lay_robot_file(data, sets)
@@ -655,7 +661,7 @@ __all__ = [
     "Config", "ConfigError", "WorldConfig", "RobotConfig", "CameraConfig", "EnvConfig",
     "SACConfig", "TrainConfig", "EvalConfig", "load_config", "to_dict", "to_yaml",
     "config_hash", "add_config_args", "config_from_args", "replace", "RobotSpec", "ROBOTS",
-    "read_yaml", "robot_spec",
+    "read_yaml", "robot_spec", "check_value", "short_repr", "MAX_MEMBERS",
     "ROBOT_NAMES", "SWEEPABLE", "parse_sweep", "enable_compile_cache", "action_box",
     "changed_keys",
     "depth_input_scale",

@@ -46,11 +46,14 @@ from mjxvine.episodes import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,
 from mjxvine.lanes import LaneTable, lane_frame, point_ahead  # noqa: F401
 from mjxvine.wrappers import AutoResetBatch
 from mjxvine.worlds.layout import CENTERLINE_STEP_M
-from mjxvine.worlds import (Vineyard, robot_spec, batch_models, build_models, pool_worlds,
+from mjxvine.worlds import (Vineyard, batch_models, build_models, pool_worlds,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
 REWARD_TERMS = ("heading", "progress", "success", "collision", "reverse")
 MAX_QVEL = 50.0  # beyond this (m/s or rad/s) the physics has exploded
+START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the lane's start
+YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
+COLLISION_MARGIN_M = 0.05  # a plant nearer than this to the robot's footprint is a collision
 
 
 def _yaw(quat: jax.Array) -> jax.Array:
@@ -73,7 +76,7 @@ class VineyardEnv(Env):
       worlds = pool_worlds(cfg)
     self.cfg = cfg
     self.worlds = list(worlds)
-    self.robot = robot_spec(cfg.robot.name)
+    self.robot = cfg.robot.spec
     self.noise_factor = cfg.camera.noise_factor if noise_factor is None else noise_factor
     models = build_models(self.worlds, cfg)
     self.mj_model = models[0]
@@ -83,9 +86,7 @@ class VineyardEnv(Env):
     # metres of x between centerline samples (at most CENTERLINE_STEP_M in file worlds)
     self.sample_m = (self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
                      if self.lanes.uniform else CENTERLINE_STEP_M)
-    # heading_target=lane: centerline samples between the robot's nearest one and its target
-    self._lookahead_samples = int(np.round(cfg.env.heading_lookahead_m / self.sample_m))
-    self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds, cfg))
+    self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds))
     self.substeps = int(round(cfg.env.control_dt / cfg.env.physics_dt))
     low, high = action_box(cfg)
     self.action_low, self.action_high = jp.array(low, jp.float32), jp.array(high, jp.float32)
@@ -116,7 +117,6 @@ class VineyardEnv(Env):
   # robot's centre plane with columns symmetric about its optical axis, the reward and the
   # start jitter are even in lateral offset and yaw). So (mirror_obs(o), mirror_action(a),
   # r, mirror_obs(o')) is as valid a transition as (o, a, r, o') (`sac.mirror_augment`).
-  # With the world yaw as input (`env.yaw_reference=world`) this needs yaw_offset_deg = 0.
 
   @staticmethod
   def mirror_obs(obs: dict) -> dict:
@@ -137,9 +137,9 @@ class VineyardEnv(Env):
   def reset(self, rng: jax.Array, direction: float | None = None,
             along: tuple[float, float] | None = None) -> State:
     """A fresh env at a random start pose of a random pool world; `direction` (+1
-    forward, -1 reverse) forces the travel direction instead of `env.start_directions`,
+    forward, -1 reverse) forces the travel direction instead of either at random,
     `along` (fractions of the row length) the range of the start point instead of
-    `env.start_along`."""
+    `START_ALONG`."""
     k_pose, k_obs, k_next = jax.random.split(rng, 3)
     pose = self.sample_pose(k_pose, direction, along)
     return self._start(pose, k_obs, k_next, episodes=jp.int32(0))
@@ -169,20 +169,19 @@ class VineyardEnv(Env):
   # ------------------------------------------------------------------ start poses
   def sample_pose(self, key: jax.Array, direction: float | None = None,
                   along: tuple[float, float] | None = None) -> dict:
-    """A random start: pool world, lane, direction (`env.start_directions`, unless given:
-    +1 forward, -1 reverse), point along the lane (uniform over the fractions `along` of
-    the row length from the lane's start, `env.start_along` unless given), jitter."""
+    """A random start: pool world, lane, direction (either at random unless given: +1
+    forward, -1 reverse), point along the lane (uniform over the fractions `along` of the
+    row length from the lane's start, `START_ALONG` unless given), jitter."""
     kw, kl, kd, ka, kx, ky = jax.random.split(key, 6)
     env = self.cfg.env
     world = jax.random.randint(kw, (), 0, len(self.worlds))
     lane = jax.random.randint(kl, (), 0, self.lanes.count[world])
     if direction is None:
-      p_forward = {"both": 0.5, "forward": 1.0, "reverse": 0.0}[env.start_directions]
-      direction = jp.where(jax.random.bernoulli(kd, p_forward), jp.float32(1), jp.float32(-1))
+      direction = jp.where(jax.random.bernoulli(kd, 0.5), jp.float32(1), jp.float32(-1))
     else:
       direction = jp.float32(direction)
     length = self.lanes.lane(world, lane)[2]
-    lo, hi = env.start_along if along is None else along
+    lo, hi = START_ALONG if along is None else along
     along = jax.random.uniform(ka, (), minval=lo * length, maxval=hi * length)
     lateral = jax.random.uniform(kx, (), minval=-1.0, maxval=1.0) * env.start_lateral_jitter_m
     yaw = jax.random.uniform(ky, (), minval=-1.0, maxval=1.0) * jp.deg2rad(
@@ -235,10 +234,10 @@ class VineyardEnv(Env):
     """World yaw (rad) that the state's yaw is measured from, for an episode from `pose`."""
     env = self.cfg.env
     if env.yaw_reference == "world":
-      return jp.float32(-np.deg2rad(env.yaw_offset_deg))
+      return jp.float32(0.0)
     if not jitter:
       return pose["yaw"]
-    half = np.deg2rad(env.yaw_reference_jitter_deg)
+    half = np.deg2rad(YAW_REFERENCE_JITTER_DEG)
     return pose["yaw"] + jax.random.uniform(key, (), minval=-half, maxval=half)
 
   def _start(self, pose: dict, k_obs, k_next, episodes, ref_jitter: bool = True,
@@ -306,13 +305,10 @@ class VineyardEnv(Env):
 
     xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
     line, k, _, width = self.lanes.lane(pose["world"], pose["lane"])
-    nearest, tangent, lateral, _ = lane_frame(line, xy, pose["direction"], k)
+    _, tangent, lateral, _ = lane_frame(line, xy, pose["direction"], k)
     dist = jp.linalg.norm(xy - pose["eor"])
-    target = pose["eor"]
-    if env.heading_target == "lane":  # a pure-pursuit point: phi = 0 only on the centreline
-      target = point_ahead(line, nearest, pose["direction"], self._lookahead_samples, k)
-    to_target = target - xy
-    phi = _wrap(jp.arctan2(to_target[1], to_target[0]) - yaw)
+    to_eor = pose["eor"] - xy
+    phi = _wrap(jp.arctan2(to_eor[1], to_eor[0]) - yaw)
     heading_err = _wrap(yaw - jp.arctan2(tangent[1], tangent[0]))
     half_lane = width / 2
     # Past the end line: beyond the EoR along the lane's end tangent, inside the lane.
@@ -320,7 +316,7 @@ class VineyardEnv(Env):
     crossed = (xy - pose["eor"]) @ end_t > 0
 
     success = (dist < env.success_radius_m) | (crossed & (jp.abs(lateral) < half_lane))
-    collision = self.plant_clearance(m, xy, yaw) < env.collision_margin_m
+    collision = self.plant_clearance(m, xy, yaw) < COLLISION_MARGIN_M
     left_lane = jp.abs(lateral) > half_lane
     reversed_ = jp.abs(heading_err) > jp.deg2rad(env.yaw_limit_deg)
     steps = info["episode_steps"] + 1

@@ -15,33 +15,38 @@ MAE/RMSE are not comparable to the paper's: each row reports the part of the lan
 (m and fraction of the centreline's arc length) and `metrics_status`: "full" when every
 run reached the end of the row (EoR), "partial" when some did, "n/a" when none did (then
 MAE/RMSE are null in results.json and "n/a" in results.md; `mae_m_raw`/`rmse_m_raw` keep
-the numbers). --which picks the checkpoint of a run dir: best (default) or last.
+the numbers). --which picks the policy of a run dir: best (default; its chosen
+selected.npz where the choice wrote one, else its best checkpoint) or last.
 
 A run dir brings its own config.yaml (an .npz its metadata): camera, networks, world and
 env options; --config/--set only override, never what the networks need
-(`mjxvine.rundir.settings`). --member K picks a member of a --seeds run (default: the one
-checkpoints/best follows). --video films the first run of each lane-direction to
+(`mjxvine.rundir.settings`). --member K picks a member of a --num-seeds run (default: the
+one checkpoints/best follows). --video films the first run of each lane-direction to
 OUT/videos/ (`mjxvine.evaluation.video`). The library is `mjxvine.evaluation`.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from mjxvine.atomic import check_output
+from mjxvine.cli import (MEMBER_HELP, ROBOT_POLICY_HELP, WHICH_HELP, CommandParser, key_type,
+                         member_error, member_type)
 from mjxvine.config import ConfigError, add_config_args, enable_compile_cache
 # One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
 from mjxvine.deploy import PolicyError
 from mjxvine.evaluation import paper, video
 from mjxvine.evaluation.policies import check_policy_file
 from mjxvine.evaluation.report import results_markdown, write_results
-from mjxvine.evaluation.rollout import all_lanes, parse_lanes, run_protocol
-from mjxvine.evaluation.video import RenderError, write_videos
+from mjxvine.evaluation.rollout import (PolicySource, Protocol, all_lanes, parse_lanes,
+                                        run_protocol)
+from mjxvine.evaluation.video import RenderError, VideoFormat, write_videos
 from mjxvine.rundir.checkpoints import WHICH
 from mjxvine.rundir.settings import policy_config
-from mjxvine.worlds import world_of
+from mjxvine.worlds import TEST_WORLD_SEED, world_of
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -57,28 +62,24 @@ def _size(text: str) -> tuple[int, int]:
 
 def parser() -> argparse.ArgumentParser:
   """The command line's flags."""
-  p = argparse.ArgumentParser(prog="python -m mjxvine.evaluate", description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--policy", required=True, help="oracle, random, a run dir or a .npz; a run "
+  p = CommandParser(prog="python -m mjxvine.evaluate", description=__doc__)
+  p.add_argument("--policy", required=True, metavar="RUN|FILE",
+                 help="oracle, random, a run dir or a .npz policy file; a run "
                  "dir's config.yaml (an .npz's metadata) gives the camera, networks and env "
                  "options, --config/--set only override")
-  p.add_argument("--which", choices=WHICH, default="best",
-                 help="with a run dir as --policy: its best checkpoint (the highest step "
-                      "under RUN/checkpoints/best/; the last step when the run has none) or "
-                      "the last one (the newest step under RUN/checkpoints/). Default: best")
-  p.add_argument("--member", type=int, default=None,
-                 help="of a run that trained several members (--seeds, sweeps): which one "
-                      "(default: the one checkpoints/best follows, member 0)")
-  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml",
-                 help="a built-in robot (jackal, husky) or a robot file (docs/your-robot.md); "
-                      "its camera and speed limits may not change a trained policy's")
-  p.add_argument("--noise", type=float, default=None,
-                 help="depth noise factor, >= 0 (default: the config's eval.noise_factor)")
-  p.add_argument("--runs", type=int, default=None,
-                 help="runs per lane and direction, >= 1 (default: the config's eval.runs)")
-  p.add_argument("--world", default=None, help="test-world seed, a saved world .json or a "
-                 "vineyard file (.geojson rows in longitude/latitude, .csv plants in metres: "
-                 "docs/your-vineyard.md; every lane, both directions)")
+  p.add_argument("--which", choices=WHICH, default="best", help=WHICH_HELP)
+  p.add_argument("--member", type=member_type, default=None, metavar="K", help=MEMBER_HELP)
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml", help=ROBOT_POLICY_HELP)
+  p.add_argument("--noise", type=key_type("eval.noise_factor"), default=None,
+                 help="depth noise factor, 0-100 (default: the config's eval.noise_factor, "
+                 "which it stands for)")
+  p.add_argument("--runs", type=key_type("eval.runs"), default=None,
+                 help="runs per lane and direction, 1-1000 as eval.runs (default: the "
+                 "config's eval.runs)")
+  p.add_argument("--world", default=None, metavar="SEED|FILE",
+                 help="test-world seed, a saved world .json or a vineyard file (.geojson "
+                 "rows in longitude/latitude, .csv plants in metres: docs/your-vineyard.md; "
+                 "every lane, both directions). Default: test world 0")
   p.add_argument("--sweep", choices=("noise", "robots", "rows"), default=None,
                  help="noise, robots: the paper's robustness tables; rows: generated test "
                       "worlds with 80 m rows 1.8-3.0 m apart on slopes of 0-10 %% "
@@ -87,8 +88,15 @@ def parser() -> argparse.ArgumentParser:
                  help="paper: the paper's whole evaluation (test worlds 0-3 with --runs, "
                       "default 5; the noise and robot tests) in one report "
                       "(mjxvine.evaluation.suite)")
-  p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--out", required=True)
+  p.add_argument("--seed", type=int, default=0, metavar="N",
+                 help="seed of the runs' random draws: their depth noise (the runs of a "
+                      "lane differ by it) and the random policy's actions; the starts are "
+                      "fixed (default 0)")
+  p.add_argument("--out", required=True, metavar="DIR",
+                 help="output directory, made if missing: results.json, results.md and "
+                      "trajectories.png (--sweep: its <sweep>.md/.json/.png; --suite: "
+                      "report.md/.json), videos/; never over an input file, nor inside the "
+                      "--policy run directory")
   v = p.add_argument_group("videos (OUT/videos/<lane><dir>.mp4; MuJoCo's renderer, headless "
                            "with EGL or OSMesa)")
   v.add_argument("--video", action="store_true",
@@ -106,13 +114,12 @@ def parser() -> argparse.ArgumentParser:
 
 
 def check_args(p: argparse.ArgumentParser, args) -> None:
-  """Exits with `p.error` (status 2, one line) on values or combinations that cannot run."""
-  if args.runs is not None and args.runs < 1:
-    p.error(f"--runs {args.runs}: need at least 1 run per lane and direction")
-  if args.noise is not None and not args.noise >= 0:  # also NaN
-    p.error(f"--noise {args.noise}: the noise factor must be >= 0")
-  if args.video_fps is not None and not args.video_fps > 0:
-    p.error(f"--video-fps {args.video_fps}: must be > 0")
+  """Exits with `p.error` (status 2, one line) on values or combinations that cannot run
+  (--runs and --noise are checked as their config keys while parsing: `cli.key_type`)."""
+  if args.video_fps is not None and not (args.video_fps > 0 and math.isfinite(args.video_fps)):
+    p.error(f"--video-fps {args.video_fps}: must be a finite number > 0")
+  if member_error(args.policy, args.member):
+    p.error(member_error(args.policy, args.member))
   filming = args.video or args.gif
   if filming and (args.sweep or args.suite):
     p.error("--video/--gif film the protocol's runs, not a --sweep or --suite")
@@ -140,8 +147,8 @@ def run_sweep(cfg, args, world, out: Path) -> None:
   if args.sweep == "rows":
     from mjxvine.evaluation.rows import sweep_rows
     say(f"evaluating {args.policy} on long rows (one compilation per grid point)...")
-    sweep_rows(cfg, args.policy, out, runs=args.runs or 1, seed=args.seed, which=args.which,
-               member=args.member, say=say)
+    sweep_rows(cfg, PolicySource(args.policy, args.which, args.member), out,
+               runs=args.runs or 1, seed=args.seed, say=say)
     print((out / "rows.md").read_text())
     return
   sweep = sweeps.sweep_noise if args.sweep == "noise" else sweeps.sweep_robots
@@ -158,15 +165,33 @@ def run_tables(cfg, source: str, args, world, out: Path) -> None:
       all_lanes(world)
   say(f"evaluating {args.policy} (config: {source}): {len(world.lanes) * 2 * runs} runs "
       f"on the {world.kind} world (compiling first)...")
-  doc, tracks = run_protocol(cfg, args.policy, world, runs=runs, noise_factor=noise,
-                             seed=args.seed, which=args.which, member=args.member,
+  doc, tracks = run_protocol(cfg, PolicySource(args.policy, args.which, args.member), world,
+                             Protocol(runs, noise, seed=args.seed),
                              video=lanes if filming else ())
   write_results(doc, world, out)
   print(results_markdown(doc))
   if tracks:
     say(f"rendering {len(tracks)} video(s) to {out / 'videos'}/ ...")
-    write_videos(tracks, world, cfg, out / "videos", mp4=args.video, gif=args.gif,
-                 fps=args.video_fps, size=args.video_size, say=say)
+    write_videos(tracks, world, cfg, out / "videos",
+                 VideoFormat(args.video, args.gif, args.video_fps, args.video_size), say=say)
+
+
+# what evaluate may write in --out (every mode's: a file read from there may be none of them)
+WRITES = ("results.json", "results.md", "trajectories.png", "videos/", "report.json",
+          "report.md", *(f"world{s}/" for s in paper.SUITE_WORLDS),
+          *(f"{sweep}.{ext}" for sweep in ("noise", "robots", "rows")
+            for ext in ("md", "json", "png")))
+
+
+def _inputs(args) -> list[tuple]:
+  """(path, what) of the files and run directory the flags name (`atomic.check_not_input`):
+  --out may write over none of them."""
+  from mjxvine.rundir.checkpoints import run_dir_of
+  policy = Path(args.policy)
+  run = run_dir_of(policy) or (policy.parent if policy.name == "checkpoints" else policy)
+  return [(run, "the run directory of --policy") if run.is_dir() else
+          (policy, "the --policy file"), (args.world, "the --world file"),
+          (args.config, "the --config file"), (args.robot, "the --robot file")]
 
 
 def run(args) -> int:
@@ -181,14 +206,15 @@ def run(args) -> int:
     except ConfigError as e:
       print(f"config error: {e}", file=sys.stderr)
       return 2
-    world = world_of(args.world or str(cfg.world.test_seed), cfg)
+    world = world_of(args.world or str(TEST_WORLD_SEED), cfg)
     if args.video_lanes:  # a bad lane is one line before anything is built
       parse_lanes(args.video_lanes, len(world.lanes))
     if args.video or args.gif:  # before the rollout: no GL, no ffmpeg is one line
       video.choose_gl()
       if args.video:
         video.check_mp4()
-    out = check_output(args.out, "--out", directory=True)  # before the first rollout
+    out = check_output(args.out, "--out", directory=True,  # before the first rollout
+                       inputs=_inputs(args), writes=WRITES)
     if args.suite == "paper":
       run_suite(cfg, args, out)
     elif args.sweep:
@@ -210,4 +236,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from mjxvine.atomic import command_main
+  # SIGINT / SIGTERM: 130 / 143 in one line, the outputs of the unfinished set removed
+  command_main(main)

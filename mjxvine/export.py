@@ -1,17 +1,18 @@
 """`python -m mjxvine.export`: a trained actor as a numpy-only .npz policy file, or ONNX.
 
-    python -m mjxvine.export --checkpoint RUN_DIR [--out policy.npz] [--config FILE]
-    python -m mjxvine.export --checkpoint RUN_DIR --which last      # not the best checkpoint
-    python -m mjxvine.export --checkpoint RUN_DIR --format onnx [--out policy.onnx]
-    python -m mjxvine.export --checkpoint policy.npz --format onnx   # convert a policy file
+    python -m mjxvine.export --policy RUN_DIR [--out policy.npz] [--config FILE]
+    python -m mjxvine.export --policy RUN_DIR --which last      # not the best checkpoint
+    python -m mjxvine.export --policy RUN_DIR --format onnx [--out policy.onnx]
+    python -m mjxvine.export --policy policy.npz --format onnx   # convert a policy file
 
-A run's checkpoint is RUN_DIR/checkpoints/best/<step>/ (the best one; --which best, the
-default) or the newest RUN_DIR/checkpoints/<step>/ (--which last); a run without a best
-checkpoint gives its last one (`mjxvine.rundir.checkpoints`). The run's config.yaml gives
-the metadata; --config FILE and --set only override it, and not what the networks were
-trained for (image size, depth range, network sizes, action box: `mjxvine.rundir.settings`).
-Of a run that trained several members (--seeds, sweeps), --member K picks one (default:
-the one checkpoints/best follows, member 0). The file format: `mjxvine.deploy.export`; the
+A run's best policy (--which best, the default) is the one its choice of checkpoint wrote
+(RUN_DIR/selected.npz) where there is one, else RUN_DIR/checkpoints/best/<step>/; --which
+last is the newest RUN_DIR/checkpoints/<step>/; a run without a best checkpoint gives its
+last one (`mjxvine.rundir.checkpoints`). The run's config.yaml gives the metadata;
+--config FILE and --set only override it, and not what the networks were trained for
+(image size, depth range, network sizes, action box: `mjxvine.rundir.settings`). Of a run
+that trained several members (--num-seeds, sweeps), --member K picks one (default: the
+one checkpoints/best follows, member 0). The file format: `mjxvine.deploy.export`; the
 ONNX graph: `mjxvine.deploy.onnx`.
 """
 
@@ -23,6 +24,7 @@ from pathlib import Path
 
 from mjxvine import config as config_lib
 from mjxvine.atomic import OutputError, check_output
+from mjxvine.cli import MEMBER_HELP, WHICH_HELP, CommandParser, member_error, member_type
 from mjxvine.deploy.export import actor_arrays, check_actor_fits, export_actor, meta_from_config
 from mjxvine.deploy.numpy_policy import PolicyError
 from mjxvine.deploy.onnx import export_onnx
@@ -39,25 +41,20 @@ def _fail(message: str, code: int = EXIT_USAGE) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-  p = argparse.ArgumentParser(prog="python -m mjxvine.export", description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--checkpoint", required=True,
-                 help="run dir, its checkpoints/ dir or one orbax checkpoint step (see "
+  p = CommandParser(prog="python -m mjxvine.export", description=__doc__)
+  p.add_argument("--policy", required=True, metavar="RUN|FILE",
+                 help="a run dir, its checkpoints/ dir or one orbax checkpoint step (see "
                       "--which); with --format onnx also an exported .npz policy file")
-  p.add_argument("--which", choices=WHICH, default="best",
-                 help="which checkpoint of a run: best (the highest step under "
-                      "RUN/checkpoints/best/; the last step when the run has none) or "
-                      "last (the newest step under RUN/checkpoints/). Default: best")
-  p.add_argument("--format", choices=("npz", "onnx"), default="npz",
-                 help="npz (numpy-only mjxvine.deploy) or onnx (needs the onnx package)")
-  p.add_argument("--out", default=None,
-                 help="output file (default RUN_DIR/policy.npz or RUN_DIR/policy.onnx; "
-                      "for an .npz input, the same name with .onnx); written whole or not "
-                      "at all, so a failed export keeps the previous file")
-  p.add_argument("--member", type=int, default=None,
-                 help="of a run that trained several members (--seeds, sweeps): which "
-                      "one to export (default: the one checkpoints/best follows, "
-                      "member 0)")
+  p.add_argument("--which", choices=WHICH, default="best", help=WHICH_HELP)
+  p.add_argument("--format", choices=FORMATS, default=None,
+                 help="npz (numpy-only mjxvine.deploy) or onnx (needs the onnx package); "
+                      "default: --out's suffix, else npz")
+  p.add_argument("--out", default=None, metavar="FILE",
+                 help="output file, .npz or .onnx as the format (default RUN_DIR/policy.npz "
+                      "or RUN_DIR/policy.onnx; for an .npz input, the same name with .onnx); "
+                      "never an input (the policy file, the run directory's files); written "
+                      "whole or not at all, so a failed export keeps the previous file")
+  p.add_argument("--member", type=member_type, default=None, metavar="K", help=MEMBER_HELP)
   p.add_argument("--preprocess", action="store_true",
                  help="onnx: in the graph, map invalid depth (NaN, inf, <= 0) to the "
                       "maximum range (or --invalid-depth) and clip to [0, max_depth]")
@@ -66,6 +63,30 @@ def parser() -> argparse.ArgumentParser:
                       "the camera's max_depth_m, as the simulator renders no return)")
   config_lib.add_config_args(p)
   return p
+
+
+FORMATS = ("npz", "onnx")
+
+
+def out_format(out: str | None, fmt: str | None) -> str:
+  """The output's format: --out's suffix (.npz, .onnx) and --format agreeing, either one
+  alone, else npz. ValueError (one line) for another suffix or a conflict: an .onnx name
+  holding an .npz file is read as what it is not."""
+  if out is None or Path(out).is_dir():  # (a directory: check_output says so)
+    return fmt or "npz"
+  suffix = Path(out).suffix
+  if suffix[1:] not in FORMATS:
+    raise ValueError(f"--out {out}: give a .npz or .onnx file name (its suffix says the "
+                     "format)")
+  if fmt is not None and fmt != suffix[1:]:
+    raise ValueError(f"--out {out}: a {suffix} name, but --format {fmt}: give a .{fmt} name "
+                     f"or --format {suffix[1:]}")
+  return suffix[1:]
+
+
+def _run_of(src: Path) -> Path:
+  """The run directory that --policy SRC (a run, its checkpoints/ or a step) lies in."""
+  return run_dir_of(src) or (src.parent if src.name == "checkpoints" else src)
 
 
 def _write(write, out: Path, what: str) -> int | None:
@@ -79,15 +100,24 @@ def _write(write, out: Path, what: str) -> int | None:
 
 
 def convert_file(args, src: Path) -> int:
-  """An .npz policy file -> its ONNX graph."""
+  """An .npz policy file -> its ONNX graph (as the file is: flags that would change or
+  pick something else are refused, not ignored)."""
   if src.suffix != ".npz":
-    return _fail(f"--checkpoint {src}: a file, but not an .npz policy file (give a run "
+    return _fail(f"--policy {src}: a file, but not an .npz policy file (give a run "
                  "directory, or an .npz written by python -m mjxvine.export)")
   if args.format != "onnx":
     return _fail(f"{src} is a file; an .npz policy converts only to --format onnx")
+  if args.config or args.overrides:
+    return _fail(f"--config/--set: {src} converts to ONNX as it is (its metadata is its "
+                 "config); they apply to a run directory's export")
+  if member_error(str(src), args.member):
+    return _fail(member_error(str(src), args.member))
+  if args.which != "best":
+    return _fail(f"--which {args.which}: a policy file is one policy; --which picks a run "
+                 "directory's checkpoint")
   out = Path(args.out) if args.out else src.with_suffix(".onnx")
   try:
-    check_output(out, "--out")
+    check_output(out, "--out", inputs=[(src, "the --policy file")])
   except OutputError as e:
     return _fail(str(e))
   try:
@@ -105,9 +135,14 @@ def export_run(args, src: Path) -> int:
   """A run's checkpoint -> a policy file (.npz or ONNX), checked against its config."""
   if not src.exists():
     return _fail(f"no such {'policy file' if src.suffix == '.npz' else 'run directory'}: {src}")
+  run = _run_of(src)
+  # never over what it reads: in the run directory only its own policy.npz / .onnx
+  inputs = dict(inputs=[(run, "the run directory of --policy"),
+                        (args.config, "the --config file")],
+                own=[run / f"policy.{f}" for f in FORMATS])
   if args.out:
     try:
-      check_output(args.out, "--out")
+      check_output(args.out, "--out", **inputs)
     except OutputError as e:
       return _fail(str(e))
   try:
@@ -127,7 +162,7 @@ def export_run(args, src: Path) -> int:
   if tower:  # the tower it trained with, as its run recorded it
     meta["conv_tower"] = tower
   try:
-    check_output(out, "--out")
+    check_output(out, "--out", **inputs)
     if args.format == "onnx":
       arrays = actor_arrays(actor, meta)
       write = lambda: export_onnx(arrays, out, preprocess=args.preprocess,
@@ -151,9 +186,15 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   if args.invalid_depth is not None and not args.preprocess:
     p.error("--invalid-depth: give --preprocess too")
-  src = Path(args.checkpoint)
+  try:
+    args.format = out_format(args.out, args.format)
+  except ValueError as e:
+    return _fail(str(e))
+  src = Path(args.policy)
   return convert_file(args, src) if src.is_file() else export_run(args, src)
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from mjxvine.atomic import command_main
+  # SIGINT / SIGTERM: 130 / 143 in one line, the outputs of the unfinished set removed
+  command_main(main)

@@ -1,16 +1,16 @@
 """`python -m mjxvine.latency`: single-decision latency of an exported policy on this CPU
 (numpy-only: runs on the robot).
 
-    python -m mjxvine.latency policy.npz [--calls 1000]                  # NumpyPolicy
-    python -m mjxvine.latency policy.onnx --threads 1 [--no-spinning]   # onnxruntime
+    python -m mjxvine.latency --policy policy.npz [--calls 1000]                # NumpyPolicy
+    python -m mjxvine.latency --policy policy.onnx --threads 1 [--no-spinning] # onnxruntime
 
 Prints one JSON line: median_ms, p99_ms, mean_ms, min_ms (wall clock per call, after
 warm-up calls), cpu_ms (process CPU time per call, all threads: spinning worker threads
 show up here) and load_1m (the host's 1-minute load average before the run). Each call
 is one decision on a random (H, W) depth image in [0, max_depth] metres and a (3,) state,
-through the public API (`NumpyPolicy.__call__`, `InferenceSession.run`). The number of
-BLAS threads of numpy is fixed when numpy is loaded: run with OPENBLAS_NUM_THREADS=N (or
-pass --threads N with threadpoolctl installed).
+through the public API (`NumpyPolicy.__call__`, `InferenceSession.run`). --threads N
+limits numpy's BLAS to N threads (threadpoolctl, a dependency of mjxvine) or sets
+onnxruntime's intra-op threads.
 """
 
 from __future__ import annotations
@@ -20,26 +20,39 @@ import json
 import sys
 from pathlib import Path
 
+from mjxvine.cli import CommandParser, int_range
 from mjxvine.deploy.latency import numpy_latency, onnx_latency
 from mjxvine.deploy.numpy_policy import PolicyError, set_blas_threads
 
 
+# A million calls of a ~1 ms policy time for about 17 minutes (and keep 8 MB of times);
+# more threads than any robot's CPU has cores measure only the oversubscription.
+MAX_CALLS = 1_000_000
+MAX_THREADS = 256
+
+
+def parser() -> argparse.ArgumentParser:
+  """The command line's flags."""
+  p = CommandParser(prog="python -m mjxvine.latency", description=__doc__)
+  p.add_argument("--policy", required=True, metavar="FILE",
+                 help="an exported policy file: .npz (NumpyPolicy) or .onnx (onnxruntime)")
+  p.add_argument("--calls", type=int_range(1, MAX_CALLS), default=1000,
+                 help=f"timed calls, 1-{MAX_CALLS} (default 1000)")
+  p.add_argument("--threads", type=int_range(1, MAX_THREADS), default=None, metavar="N",
+                 help=f"1-{MAX_THREADS}; onnxruntime: intra-op threads (default 1); .npz: "
+                      "numpy's BLAS threads (default: as numpy started, OPENBLAS_NUM_THREADS)")
+  p.add_argument("--no-spinning", action="store_true",
+                 help="onnxruntime: worker threads sleep instead of spinning")
+  p.add_argument("--seed", type=int, default=0, metavar="N",
+                 help="seed of the random depth images and states the policy is called on "
+                      "(default 0)")
+  return p
+
+
 def main(argv=None) -> int:
-  parser = argparse.ArgumentParser(prog="python -m mjxvine.latency", description=__doc__,
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
-  parser.add_argument("policy", help="an .npz (NumpyPolicy) or .onnx (onnxruntime) file")
-  parser.add_argument("--calls", type=int, default=1000, help="timed calls, >= 1")
-  parser.add_argument("--threads", type=int, default=None,
-                      help="onnxruntime intra-op threads (default 1); numpy: BLAS threads "
-                           "via threadpoolctl, if installed")
-  parser.add_argument("--no-spinning", action="store_true",
-                      help="onnxruntime: worker threads sleep instead of spinning")
-  parser.add_argument("--seed", type=int, default=0)
-  args = parser.parse_args(argv)
-  if args.calls < 1:
-    parser.error(f"--calls {args.calls}: need at least 1 call")
-  if args.threads is not None and args.threads < 1:
-    parser.error(f"--threads {args.threads}: need at least 1 thread")
+  """The CLI: one JSON line; 2 a bad argument or policy file (one line)."""
+  p = parser()
+  args = p.parse_args(argv)  # --calls and --threads are range-checked here
   if not Path(args.policy).is_file():
     print(f"latency error: no such policy file: {args.policy}", file=sys.stderr)
     return 2
@@ -49,7 +62,8 @@ def main(argv=None) -> int:
                             not args.no_spinning)
     else:
       if args.threads is not None and not set_blas_threads(args.threads):
-        parser.error("--threads with a .npz needs threadpoolctl; set OPENBLAS_NUM_THREADS")
+        p.error("--threads with a .npz needs threadpoolctl (pip install threadpoolctl); "
+                "or set OPENBLAS_NUM_THREADS=N")
       result = numpy_latency(args.policy, args.calls, args.seed)
   except PolicyError as e:  # an unreadable or incomplete .npz or .onnx
     print(f"latency error: {e}", file=sys.stderr)
@@ -59,4 +73,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from mjxvine.atomic import command_main
+  # SIGINT / SIGTERM: 130 / 143 in one line, the outputs of the unfinished set removed
+  command_main(main)

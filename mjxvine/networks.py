@@ -15,14 +15,15 @@ With a 112x112 depth image and a 3-dim state the actor has exactly 104,100 param
 and each critic 103,841 (ReLU after every conv; the mean and log-std heads are two
 separate Dense(2) layers on the last hidden layer).
 
-Mixed precision (`compute_dtype=bfloat16`): the convs and hidden layers compute in
-bfloat16 on float32 parameters (flax casts them per call); the tower's pooled features,
-the heads (mean, log-std, Q) and everything after them stay float32, so losses,
-gradients and optimiser states are float32.
+How the learner computes the conv tower on this machine (`learner_conv_impl`: XLA's
+convs, the `shift` rewrite of the first, or the `native` CPU kernel; the same parameters
+and numbers to float32 rounding) and how it compiles its gradient steps
+(`learner_compiler_options`, `unroll_gradient_steps`) live here, beside the tower.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Callable, NamedTuple, Sequence
 
@@ -31,11 +32,11 @@ import jax
 import jax.numpy as jnp
 
 from mjxvine import native
-from mjxvine.config import action_box, depth_input_scale
-from mjxvine.tower import (CONV_HOOKS, CONV_IMPLS, CONV_LAYERS, MIN_IMAGE_SIZE, max_pool_2x2,
-                           pad_for_tower)
+from mjxvine.config import action_box, depth_input_scale, replace
+from mjxvine.tower import CONV_HOOKS, CONV_IMPLS, CONV_LAYERS, MIN_IMAGE_SIZE, pad_for_tower
 
 Obs = Any  # a dict {"depth", "state"} or a flat vector, with leading batch dims
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # the actor's log-std clip (the paper's)
 
 class _ConvParams(nn.Module):
   """An `nn.Conv`'s 3x3 params, (kernel (3, 3, in_features, features), bias (features,)),
@@ -51,13 +52,10 @@ class _ConvParams(nn.Module):
                               jnp.float32)
 
 
-def runs_native_tower(conv_impl: str, features: int, dtype=jnp.float32) -> bool:
+def runs_native_tower(conv_impl: str, features: int) -> bool:
   """Whether a `ConvTower` of these fields computes the whole tower as one kernel call
-  (`native.tower`): "native", float32, and features the kernel covers; else its
-  convs are XLA's."""
-  if conv_impl != "native" or jnp.dtype(dtype) != jnp.float32:
-    return False
-  return native.supports_tower(features)
+  (`native.tower`): "native" and features the kernel covers; else its convs are XLA's."""
+  return conv_impl == "native" and native.supports_tower(features)
 
 
 class ConvTower(nn.Module):
@@ -70,16 +68,14 @@ class ConvTower(nn.Module):
   """
   features: int = 32
   depth_scale: float = 1.0  # the input is multiplied by this (e.g. 1 / max_depth)
-  dtype: Any = jnp.float32  # computation dtype of the convs
-  conv_impl: str = "xla"  # "xla" (lax.conv_general_dilated), "dot" (im2col and a dot),
-  # "shift" (the first conv as `conv3x3_shift`, the others XLA's) or "native" (the whole
-  # tower as `native.tower` where it applies: float32, 8, 16 or 32 features; else
-  # "shift")
+  conv_impl: str = "xla"  # "xla" (lax.conv_general_dilated), "shift" (the first conv as
+  # `conv3x3_shift`, the others XLA's) or "native" (the whole tower as `native.tower`
+  # where it applies: 8, 16 or 32 features; else "shift")
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     batch_shape = x.shape[:-3]
-    x = (x.reshape((-1,) + x.shape[-3:]) * self.depth_scale).astype(self.dtype)
+    x = x.reshape((-1,) + x.shape[-3:]) * self.depth_scale
     if min(x.shape[-3:-1]) < MIN_IMAGE_SIZE:
       raise ValueError(f"depth image {x.shape[-3:-1]} is too small for the conv tower "
                        f"(at least {MIN_IMAGE_SIZE}x{MIN_IMAGE_SIZE})")
@@ -89,31 +85,29 @@ class ConvTower(nn.Module):
     if self.conv_impl == "native":
       if not native.available():
         raise RuntimeError(f"conv_impl 'native': {native.unavailable_reason()}")
-      if runs_native_tower(self.conv_impl, self.features, self.dtype):
+      if runs_native_tower(self.conv_impl, self.features):
         params, c = [], x.shape[-1]
         for i in range(len(CONV_LAYERS)):
           params.append(_ConvParams(c, self.features, name=f"conv{i}")())
           c = self.features
         return native.tower(x, params).reshape(batch_shape + (self.features,))
-    dot = self.conv_impl == "dot"
     hook = CONV_HOOKS.get(self.conv_impl)
     conv = {"conv_general_dilated": hook} if hook else {}
     for i, (stride, pool) in enumerate(CONV_LAYERS):
-      x = nn.Conv(self.features, (3, 3), (stride, stride), padding="VALID", dtype=self.dtype,
-                  name=f"conv{i}", **conv)(x)
+      x = nn.Conv(self.features, (3, 3), (stride, stride), padding="VALID", name=f"conv{i}",
+                  **conv)(x)
       x = nn.relu(x)
       if pool:
-        x = (max_pool_2x2(x) if dot else
-             nn.max_pool(x, (2, 2), strides=(2, 2), padding="VALID"))
-    x = jnp.mean(x.astype(jnp.float32), axis=(-3, -2))
+        x = nn.max_pool(x, (2, 2), strides=(2, 2), padding="VALID")
+    x = jnp.mean(x, axis=(-3, -2))
     return x.reshape(batch_shape + (self.features,))
 
 
-def _torso_input(obs: Obs, features: int, depth_scale: float, extra=(),
-                 dtype=jnp.float32, conv_impl="xla") -> jax.Array:
+def _torso_input(obs: Obs, features: int, depth_scale: float, conv_impl: str,
+                 extra=()) -> jax.Array:
   """Concatenates [tower(depth), state, *extra] (dict obs) or [obs, *extra] (vector)."""
   if isinstance(obs, dict):
-    feats = ConvTower(features, depth_scale, dtype, conv_impl, name="tower")(obs["depth"])
+    feats = ConvTower(features, depth_scale, conv_impl, name="tower")(obs["depth"])
     parts = [feats, obs["state"]]
   else:
     parts = [obs]
@@ -124,29 +118,22 @@ class Actor(nn.Module):
   """Gaussian policy head over pre-squash actions.
 
   `__call__(obs) -> (mean, log_std)`, both (..., action_size); log_std is clipped to
-  [log_std_min, log_std_max].
+  [LOG_STD_MIN, LOG_STD_MAX].
   """
   action_size: int
   hidden: Sequence[int] = (256, 256)
   conv_features: int = 32
   depth_scale: float = 1.0
-  log_std_min: float = -20.0
-  log_std_max: float = 2.0
-  dtype: Any = jnp.float32  # computation dtype of the tower and hidden layers
   conv_impl: str = "xla"  # the tower's convs (`CONV_IMPLS`)
-  mean_init_scale: float = 1.0  # the mean head's initial weights: LeCun normal x this
 
   @nn.compact
   def __call__(self, obs: Obs) -> tuple[jax.Array, jax.Array]:
-    x = _torso_input(obs, self.conv_features, self.depth_scale, dtype=self.dtype,
-                     conv_impl=self.conv_impl)
+    x = _torso_input(obs, self.conv_features, self.depth_scale, self.conv_impl)
     for i, h in enumerate(self.hidden):
-      x = nn.relu(nn.Dense(h, dtype=self.dtype, name=f"dense{i}")(x))
-    x = x.astype(jnp.float32)
-    mean = nn.Dense(self.action_size, name="mean", kernel_init=nn.initializers.variance_scaling(
-        self.mean_init_scale ** 2, "fan_in", "truncated_normal"))(x)
+      x = nn.relu(nn.Dense(h, name=f"dense{i}")(x))
+    mean = nn.Dense(self.action_size, name="mean")(x)
     log_std = nn.Dense(self.action_size, name="log_std")(x)
-    return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
+    return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
 
 
 class Critic(nn.Module):
@@ -154,39 +141,19 @@ class Critic(nn.Module):
   hidden: Sequence[int] = (256, 256)
   conv_features: int = 32
   depth_scale: float = 1.0
-  dtype: Any = jnp.float32
   conv_impl: str = "xla"
   layer_norm: bool = False  # LayerNorm before each hidden ReLU (`sac.critic_layer_norm`)
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
-    x = _torso_input(obs, self.conv_features, self.depth_scale, extra=(action,),
-                     dtype=self.dtype, conv_impl=self.conv_impl)
-    return _q_layers(x, self.hidden, self.dtype, self.layer_norm)
-
-
-def _q_layers(x: jax.Array, hidden: Sequence[int], dtype: Any, layer_norm: bool) -> jax.Array:
-  """A critic's layers after its torso input, called inside a module's `nn.compact` (so
-  that `Critic` and `CriticHead` name their params alike): q (...,)."""
-  for i, h in enumerate(hidden):
-    x = nn.Dense(h, dtype=dtype, name=f"dense{i}")(x)
-    if layer_norm:
-      x = nn.LayerNorm(dtype=dtype, name=f"norm{i}")(x)
-    x = nn.relu(x)
-  return nn.Dense(1, name="q")(x.astype(jnp.float32))[..., 0]
-
-
-class CriticHead(nn.Module):
-  """A critic's layers after its tower: `__call__(x) -> q (...,)` on x = [features, state,
-  action]. Its params are a `Critic`'s without "tower" (the same names), so that
-  `twin_critic_features` and `twin_critic_heads` split one critic evaluation in two."""
-  hidden: Sequence[int] = (256, 256)
-  dtype: Any = jnp.float32
-  layer_norm: bool = False
-
-  @nn.compact
-  def __call__(self, x: jax.Array) -> jax.Array:
-    return _q_layers(x, self.hidden, self.dtype, self.layer_norm)
+    x = _torso_input(obs, self.conv_features, self.depth_scale, self.conv_impl,
+                     extra=(action,))
+    for i, h in enumerate(self.hidden):
+      x = nn.Dense(h, name=f"dense{i}")(x)
+      if self.layer_norm:
+        x = nn.LayerNorm(name=f"norm{i}")(x)
+      x = nn.relu(x)
+    return nn.Dense(1, name="q")(x)[..., 0]
 
 
 class TwinCritic(nn.Module):
@@ -199,38 +166,15 @@ class TwinCritic(nn.Module):
   conv_features: int = 32
   depth_scale: float = 1.0
   num: int = 2
-  dtype: Any = jnp.float32
   conv_impl: str = "xla"
   layer_norm: bool = False
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
     return jnp.stack([
-        Critic(self.hidden, self.conv_features, self.depth_scale, self.dtype, self.conv_impl,
+        Critic(self.hidden, self.conv_features, self.depth_scale, self.conv_impl,
                self.layer_norm, name=f"critic{i}")(obs, action)
         for i in range(self.num)])
-
-
-def twin_critic_features(critic: "TwinCritic", params: Any, obs: Obs) -> list[jax.Array]:
-  """Each critic's tower features of `obs`, [(..., conv_features)] * num (a vector
-  observation has no tower: the features are the observation itself)."""
-  if not isinstance(obs, dict):
-    return [obs] * critic.num
-  tower = ConvTower(critic.conv_features, critic.depth_scale, critic.dtype, critic.conv_impl)
-  return [tower.apply({"params": params[f"critic{i}"]["tower"]}, obs["depth"])
-          for i in range(critic.num)]
-
-
-def twin_critic_heads(critic: "TwinCritic", params: Any, features: list[jax.Array], obs: Obs,
-                      action: jax.Array) -> jax.Array:
-  """q (num, ...) from `twin_critic_features`' output: with the features of the same
-  params, exactly `critic.apply({"params": params}, obs, action)`."""
-  head = CriticHead(critic.hidden, critic.dtype, critic.layer_norm)
-  state = [obs["state"]] if isinstance(obs, dict) else []
-  return jnp.stack([
-      head.apply({"params": {k: v for k, v in params[f"critic{i}"].items() if k != "tower"}},
-                 jnp.concatenate([f] + state + [action], axis=-1))
-      for i, f in enumerate(features)])
 
 
 class SACNetworks(NamedTuple):
@@ -242,54 +186,111 @@ class SACNetworks(NamedTuple):
 
 
 def make_networks(action_low: Sequence[float], action_high: Sequence[float], hidden: int = 256,
-                  conv_features: int = 32, depth_scale: float = 1.0,
-                  log_std_min: float = -20.0, log_std_max: float = 2.0,
-                  compute_dtype: str = "float32", conv_impl: str = "xla",
-                  critic_layer_norm: bool = False,
-                  actor_mean_init_scale: float = 1.0) -> SACNetworks:
+                  conv_features: int = 32, depth_scale: float = 1.0, conv_impl: str = "xla",
+                  critic_layer_norm: bool = False) -> SACNetworks:
   """Builds the actor and twin critic for an action box [action_low, action_high].
 
   `depth_scale` multiplies the depth (metres) before the first conv; the paper's
-  networks are `hidden=256, conv_features=32` (two hidden layers). `compute_dtype`: "float32"
-  or "bfloat16" (mixed precision, see the module docstring). `conv_impl`: how the conv
-  towers compute their convolutions (`CONV_IMPLS`; the same parameters either way).
+  networks are `hidden=256, conv_features=32` (two hidden layers). `conv_impl`: how the
+  conv towers compute their convolutions (`CONV_IMPLS`; the same parameters either way).
   `critic_layer_norm`: LayerNorm before each hidden ReLU of the critics (not the paper's:
-  it adds 4 * hidden parameters per critic). `actor_mean_init_scale` scales the initial
-  weights of the actor's mean head (1: flax's LeCun normal).
+  it adds 4 * hidden parameters per critic).
   """
-  dtype = jnp.dtype(compute_dtype)
   low = jnp.asarray(action_low, jnp.float32)
   high = jnp.asarray(action_high, jnp.float32)
   if low.shape != high.shape or low.ndim != 1 or not bool(jnp.all(high > low)):
     raise ValueError(f"bad action box: low={action_low}, high={action_high}")
   hs = (hidden, hidden)
-  actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, log_std_min, log_std_max,
-                dtype, conv_impl, actor_mean_init_scale)
-  critic = TwinCritic(hs, conv_features, depth_scale, dtype=dtype, conv_impl=conv_impl,
+  actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, conv_impl)
+  critic = TwinCritic(hs, conv_features, depth_scale, conv_impl=conv_impl,
                       layer_norm=critic_layer_norm)
   return SACNetworks(actor, critic, low, high)
-
-
-def native_towers(nets: SACNetworks) -> bool:
-  """Whether the towers of `nets` run as the native kernel, with no XLA convolution (which
-  XLA:CPU runs far slower inside a loop body, jax-ml/jax#12868)."""
-  return runs_native_tower(nets.actor.conv_impl, nets.actor.conv_features, nets.actor.dtype)
 
 
 def make_networks_from_config(cfg, conv_impl: str = "xla", box=None) -> SACNetworks:
   """The networks of a `mjxvine.config.Config`.
 
   Action box `box` = (low, high), by default the vineyard's `config.action_box`; depth
-  scaled by `config.depth_input_scale` so that the tower sees [0, 1]; sizes and log-std
-  bounds from `cfg.sac`.
+  scaled by `config.depth_input_scale` so that the tower sees [0, 1]; sizes from `cfg.sac`.
   """
   return make_networks(
       *(action_box(cfg) if box is None else box), hidden=cfg.sac.hidden,
       conv_features=cfg.sac.conv_features, depth_scale=depth_input_scale(cfg),
-      log_std_min=cfg.sac.log_std_min, log_std_max=cfg.sac.log_std_max,
-      compute_dtype=cfg.sac.compute_dtype, conv_impl=conv_impl,
-      critic_layer_norm=cfg.sac.critic_layer_norm,
-      actor_mean_init_scale=cfg.sac.actor_mean_init_scale)
+      conv_impl=conv_impl, critic_layer_norm=cfg.sac.critic_layer_norm)
+
+
+# ----------------------------------------------------------------------------------------
+# How the learner computes the tower on this machine.
+
+
+def native_towers(nets: SACNetworks) -> bool:
+  """Whether the towers of `nets` run as the native kernel, with no XLA convolution (which
+  XLA:CPU runs far slower inside a loop body, jax-ml/jax#12868)."""
+  return runs_native_tower(nets.actor.conv_impl, nets.actor.conv_features)
+
+
+def unroll_gradient_steps(nets: SACNetworks, grad_steps: int) -> bool:
+  """Whether a loop of `grad_steps` gradient steps is unrolled: on the CPU backend, up to
+  16 steps of towers with XLA's convolutions (which XLA:CPU runs ~20x slower inside a
+  loop body, jax-ml/jax#12868); rolled elsewhere (one step compiled; the native tower,
+  which has no XLA convolution, runs as fast rolled)."""
+  return jax.default_backend() == "cpu" and grad_steps <= 16 and not native_towers(nets)
+
+
+@functools.lru_cache(maxsize=None)
+def learner_compiler_options() -> dict | None:
+  """XLA compiler options for the programs that take gradient steps (`jax.jit(...,
+  compiler_options=...)`), or None.
+
+  On the CPU backend, convolutions are not handed to the YNNPACK library
+  (`xla_cpu_experimental_ynn_fusion_type` empty): its convolution is fast forward but
+  slow for the gradient w.r.t. the kernel (an 18x18-window convolution of the conv tower),
+  which dominates a gradient step; XLA's own convolution takes about half as long there.
+  The same numbers to float32 rounding. None on accelerators, and where this jaxlib does
+  not know the option.
+  """
+  if jax.default_backend() != "cpu":
+    return None
+  options = {"xla_cpu_experimental_ynn_fusion_type": ""}
+  try:
+    jax.jit(lambda x: x + 1, compiler_options=options)(jnp.zeros(()))
+  except Exception:  # pylint: disable=broad-except
+    return None
+  return options
+
+
+def learner_conv_impl(choice: str = "auto") -> str:
+  """How the trainer's networks compute the conv tower (`tower.CONV_IMPLS`):
+  `train.conv_impl` where it names one; else ("auto") on the CPU backend "native" (the
+  whole tower as one hand-written kernel call, `mjxvine.native`: 3-4x the gradient
+  steps/s of XLA's tower for `cpu.yaml`) where it builds, else "shift" (the first conv as
+  a sum of strided slices); elsewhere "xla", so that accelerator programs and their cost
+  analysis are unchanged. Evaluation and export keep XLA's convolution."""
+  if choice != "auto":
+    return choice
+  if jax.default_backend() != "cpu":
+    return "xla"
+  return "native" if native.available() else "shift"
+
+
+def resolve_conv_impl(cfg):
+  """`cfg` (a `mjxvine.config.Config`) with `train.conv_impl: auto` replaced by the tower
+  it takes here (`learner_conv_impl`): what a run records in its config.yaml, so that the
+  same config trains the same way, or refuses, on another machine."""
+  if cfg.train.conv_impl != "auto":
+    return cfg
+  return replace(cfg, train={"conv_impl": learner_conv_impl("auto")})
+
+
+def describe_conv_impl(choice: str = "auto") -> str:
+  """`learner_conv_impl(choice)` in words, for a run's log: "native (avx512)", or "shift
+  (native: <why not>)" where auto could not take the native tower."""
+  impl = learner_conv_impl(choice)
+  if impl == "native":
+    return f"native ({native.instruction_set()})"
+  if choice == "auto" and jax.default_backend() == "cpu":
+    return f"{impl} (native: {native.unavailable_reason()})"
+  return impl
 
 
 def init_params(nets: SACNetworks, key: jax.Array, obs: Obs) -> tuple[Any, Any]:

@@ -12,7 +12,10 @@ height_px and velocity.v_max_mps / w_max_radps. The built-in robots (`ROBOTS`) a
 files in mjxvine/worlds/data/robots/. A bad file raises `RobotFileError`, one line naming
 the file and its fault (`mjxvine.config.robot_spec` turns it into a `ConfigError`).
 
-Only yaml and the standard library are imported: `mjxvine.config` validates with it.
+Every YAML file or value the package reads goes through `load_yaml` / `yaml_text` here: at
+most 1 MiB, nested at most 16 deep, no anchors or aliases, scalars as YAML 1.2 reads them;
+errors quote values with `short_repr` (one short line). Only yaml and the standard library
+are imported: `mjxvine.config` validates with it.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import dataclasses
 import difflib
 import math
 import re
+import reprlib
 from pathlib import Path
 
 import yaml
@@ -31,6 +35,112 @@ SUFFIXES = (".yaml", ".yml")
 
 class RobotFileError(ValueError):
   """A robot file (or robot name) is invalid; the message names the file and the fault."""
+
+
+# Every YAML this package reads (configs, `--set` values, robot files) goes through
+# `yaml_text`: a file is at most MAX_YAML_BYTES, nested at most MAX_YAML_DEPTH deep, without
+# anchors or aliases (a few hundred bytes of nested aliases expand to gigabytes), and its
+# plain scalars mean what YAML 1.2 says (`010` is ten, `1:30` is text, `yes` is text).
+MAX_YAML_BYTES = 1 << 20  # 1 MiB: a config or robot file is a few KB
+MAX_YAML_DEPTH = 16  # mappings and lists inside each other; a config needs 3
+
+
+def clean(text: str, limit: int = 200) -> str:
+  """`text` for a one-line message: at most `limit` characters ("..." where cut), control
+  and other unprintable characters (newlines, ANSI escapes) escaped as Python writes them."""
+  head = text[:limit + 1]
+  out = "".join(c if c.isprintable() else repr(c)[1:-1] for c in head)
+  return out if len(out) <= limit and len(text) <= limit else out[:max(limit - 3, 0)] + "..."
+
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxdict, _REPR.maxlist, _REPR.maxtuple = 2, 4, 4, 4
+_REPR.maxset = _REPR.maxfrozenset = 4
+_REPR.maxstring = _REPR.maxother = _REPR.maxlong = 200
+
+
+def short_repr(value, limit: int = 60) -> str:
+  """`value`'s repr for an error message: its first `limit` characters at most, on one
+  line, however big, deep or odd the value (every value an error quotes goes through
+  this)."""
+  try:
+    text = repr(value[:limit + 1]) if isinstance(value, str) else _REPR.repr(value)
+  except ValueError:  # an int too long to print (sys.get_int_max_str_digits)
+    text = f"<{type(value).__name__}>"
+  return clean(text, limit)
+
+
+class _Loader(yaml.SafeLoader):
+  """`yaml.SafeLoader` that refuses anchors, aliases and deep nesting, and resolves plain
+  scalars by YAML 1.2's core schema: integers decimal (or 0o / 0x), floats, true / false,
+  null; anything else (`1:30`, `yes`, `2024-01-01`, `1_000`) is a string."""
+
+  depth = 0
+
+  def compose_node(self, parent, index):
+    event = self.peek_event()
+    if isinstance(event, yaml.AliasEvent) or event.anchor is not None:
+      raise yaml.composer.ComposerError(
+          None, None, "anchors and aliases (&name, *name) are not allowed",
+          event.start_mark)
+    if self.depth >= MAX_YAML_DEPTH:
+      raise yaml.composer.ComposerError(
+          None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", event.start_mark)
+    self.depth += 1
+    try:
+      return super().compose_node(parent, index)
+    finally:
+      self.depth -= 1
+
+  def construct_yaml_int(self, node):
+    text = self.construct_scalar(node)
+    body = text.lstrip("+-")
+    try:  # decimal whatever the leading zeros (YAML 1.1 read 010 as octal 8)
+      if body[:2] in ("0o", "0x"):
+        value = int(body[2:], 8 if body[1] == "o" else 16)
+        return -value if text.startswith("-") else value
+      return int(text, 10)
+    except ValueError:  # also an int of more digits than Python converts
+      raise yaml.constructor.ConstructorError(
+          None, None, f"{short_repr(text)} is not an integer", node.start_mark) from None
+
+  def construct_yaml_float(self, node):
+    text = self.construct_scalar(node)
+    special = {".inf": math.inf, "+.inf": math.inf, "-.inf": -math.inf, ".nan": math.nan}
+    if text.lower() in special:
+      return special[text.lower()]
+    try:  # no sexagesimal (YAML 1.1 read 1:30 as 90)
+      return float(text)
+    except ValueError:
+      raise yaml.constructor.ConstructorError(
+          None, None, f"{short_repr(text)} is not a number", node.start_mark) from None
+
+
+_Loader.yaml_implicit_resolvers = {}
+for _tag, _pattern, _first in (
+    ("bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
+    ("null", r"~|null|Null|NULL|", ["~", "n", "N", ""]),
+    ("int", r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
+    ("float", r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+     r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)", "-+0123456789.")):
+  _Loader.add_implicit_resolver(f"tag:yaml.org,2002:{_tag}", re.compile(f"^(?:{_pattern})$"),
+                                list(_first))
+_Loader.add_constructor("tag:yaml.org,2002:int", _Loader.construct_yaml_int)
+_Loader.add_constructor("tag:yaml.org,2002:float", _Loader.construct_yaml_float)
+
+
+def yaml_text(text: str, shown: str, error: type[Exception]):
+  """The YAML document `text` (`_Loader`'s rules); `error`, one line naming `shown`, when
+  it is not YAML text or breaks a rule."""
+  if len(text) > MAX_YAML_BYTES:
+    raise error(f"{shown}: longer than {MAX_YAML_BYTES >> 20} MiB of YAML")
+  try:
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader
+  except yaml.YAMLError as e:
+    mark, problem = getattr(e, "problem_mark", None), getattr(e, "problem", None)
+    fault = (f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+             if mark is not None and problem else " ".join(str(e).split()))
+    raise error(f"{shown}: not valid YAML ({clean(fault)})") from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +204,7 @@ NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
 def _unknown(shown: str, key: str, known) -> RobotFileError:
+  key = clean(key, 80)  # a key of the file: shown, but short and on one line
   close = difflib.get_close_matches(key.rsplit(".", 1)[-1], known, n=2, cutoff=0.6)
   hint = f"; did you mean {' or '.join(close)}?" if close else f" (known: {', '.join(known)})"
   return RobotFileError(f"{shown}: unknown key {key}{hint}")
@@ -107,12 +218,13 @@ def _number(shown: str, key: str, value, lo, hi):
     except ValueError:
       pass
   if isinstance(value, bool) or not isinstance(value, (int, float)):
-    raise RobotFileError(f"{shown}: {key} = {value!r}: expected a number")
+    raise RobotFileError(f"{shown}: {key} = {short_repr(value)}: expected a number")
   if not math.isfinite(value):
-    raise RobotFileError(f"{shown}: {key} = {value!r}: expected a finite number")
+    raise RobotFileError(f"{shown}: {key} = {short_repr(value)}: expected a finite number")
   if isinstance(lo, int):
     if not float(value).is_integer():
-      raise RobotFileError(f"{shown}: {key} = {value!r}: expected a whole number of pixels")
+      raise RobotFileError(f"{shown}: {key} = {short_repr(value)}: expected a whole number "
+                           "of pixels")
     value = int(value)
   else:
     value = float(value)
@@ -158,7 +270,7 @@ def parse_robot(doc, shown: str) -> RobotSpec:
   if name is None:
     raise RobotFileError(f"{shown}: missing key name")
   if not isinstance(name, str) or not NAME.match(name):
-    raise RobotFileError(f"{shown}: name = {name!r}: expected a word of letters, digits, "
+    raise RobotFileError(f"{shown}: name = {short_repr(name)}: expected a word of letters, digits, "
                          "'_', '.' or '-' (at most 64 characters)")
   fields = {"name": name}
   for group, keys in SCHEMA.items():
@@ -182,22 +294,27 @@ def parse_robot(doc, shown: str) -> RobotSpec:
 
 
 def load_yaml(path: Path, shown: str, error: type[Exception], what: str):
-  """The YAML document in the file `path`; `error`, one line naming `shown`, when it
-  cannot be read or is not YAML text (robot files here, config files in `config`)."""
+  """The YAML document in the file `path` (at most MAX_YAML_BYTES, read by `yaml_text`'s
+  rules); `error`, one line naming `shown`, when it cannot be read or is not such YAML text
+  (robot files here, config files in `config`)."""
   try:
-    return yaml.safe_load(path.read_text(encoding="utf-8"))
+    with open(path, "rb") as f:
+      data = f.read(MAX_YAML_BYTES + 1)
+    if len(data) > MAX_YAML_BYTES:
+      raise error(f"{shown}: larger than {MAX_YAML_BYTES >> 20} MiB; a {what} is a few KB "
+                  "of YAML text")
+    text = data.decode("utf-8")
   except UnicodeDecodeError as e:
     raise error(f"{shown}: not a text file (byte {e.start} is not UTF-8); a {what} is "
                 "YAML text") from None
   except OSError as e:
     raise error(f"{shown}: cannot be read ({e.strerror})") from None
-  except yaml.YAMLError as e:
-    raise error(f"{shown}: not valid YAML ({' '.join(str(e).split())})") from None
+  return yaml_text(text, shown, error)
 
 
 def read_robot_file(path: str | Path, shown: str | None = None) -> RobotSpec:
   """The `RobotSpec` of the robot file at `path` (`RobotFileError` if it is bad)."""
-  path, shown = Path(path), shown or str(path)
+  path, shown = Path(path), clean(shown or str(path))
   if not path.is_file():
     raise RobotFileError(f"robot file not found: {shown}")
   doc = load_yaml(path, shown, RobotFileError, "robot file")
@@ -219,10 +336,10 @@ def robot_spec(name_or_path: str | Path) -> RobotSpec:
     return ROBOTS[text]
   path = Path(text).expanduser()
   if path.suffix.lower() not in SUFFIXES:
-    raise RobotFileError(f"unknown robot {text!r}: a built-in name ({', '.join(ROBOTS)}) "
-                         "or a robot file FILE.yaml")
+    raise RobotFileError(f"unknown robot {short_repr(text)}: a built-in name "
+                         f"({', '.join(ROBOTS)}) or a robot file FILE.yaml")
   if not path.is_file():
-    raise RobotFileError(f"robot file not found: {text}")
+    raise RobotFileError(f"robot file not found: {clean(text)}")
   resolved = path.resolve()
   key = (str(resolved), resolved.stat().st_mtime_ns)
   if key not in _READ:
@@ -238,4 +355,5 @@ def config_values(robot: RobotSpec) -> dict[str, float | int]:
 
 
 __all__ = ["RobotSpec", "RobotFileError", "ROBOTS", "SCHEMA", "robot_spec", "read_robot_file",
-           "parse_robot", "config_values"]
+           "parse_robot", "config_values", "load_yaml", "yaml_text", "short_repr", "clean",
+           "MAX_YAML_BYTES", "MAX_YAML_DEPTH"]

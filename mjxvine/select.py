@@ -1,8 +1,6 @@
 """`python -m mjxvine.select`: the old name of `python -m mjxvine.choose` (the best
 checkpoint, chosen on validation worlds after training), kept so that it still answers."""
 
-import sys
-
 from mjxvine.choose import main as choose_main
 
 
@@ -11,4 +9,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from mjxvine.atomic import command_main
+  # SIGINT / SIGTERM: 130 / 143 in one line, selection.json kept
+  command_main(main, keep_outputs=True)

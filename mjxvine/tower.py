@@ -5,13 +5,14 @@ The tower (`networks.ConvTower`) is 4 3x3 VALID convs (`CONV_LAYERS`: strides 2,
 a 2x2 max pool after the second), each with a ReLU, and a global mean. This module holds
 what every formulation of it shares: the layer table, the covering size and the padding
 that lets every pixel reach the output, XLA's reference conv (`lax_conv3x3`), and the
-opt-in rewrites of its convs for XLA's CPU backend (`conv_impl` "dot" and "shift", as
-`CONV_HOOKS` for `nn.Conv`). The hand-written CPU kernel of the whole tower ("native") is
+rewrite of its first conv for XLA's CPU backend (`conv_impl` "shift", as `CONV_HOOKS` for
+`nn.Conv`). The hand-written CPU kernel of the whole tower ("native") is
 `mjxvine.native`. Images are NHWC float32 (N, H, W, C), kernels HWIO (3, 3, C, F).
 """
 
 from __future__ import annotations
 
+import inspect
 from functools import partial
 from typing import Sequence
 
@@ -63,24 +64,14 @@ def pad_for_tower(x: jax.Array) -> jax.Array:
   return jnp.pad(x, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
 
 
-# ----------------------------------------------------------------------------------------
-# The tower's convolutions as matrix multiplies (`conv_impl="dot"`, opt-in).
-#
-# Each 3x3 VALID conv becomes im2col (9 strided slices, concatenated on the channel axis)
-# and one dot, with a hand-written gradient that is dots and slices too (never XLA's
-# convolution); max pooling becomes a reshape and a max. Exact to float32 rounding. On
-# XLA's CPU backend (jax 0.10) the concatenation costs more than the convolutions it
-# replaces, so "dot" is never a default; it is kept for
-# `python -m mjxvine.bench update --conv-impl dot`.
 # `conv_impl="shift"` runs only the first conv, whose image has one channel, as
-# `conv3x3_shift`: 1.25x the gradient steps/s of the trainer's CPU step for `cpu.yaml`
-# (docs/results/cpu-update-speed.md). The trainer uses it on the CPU
-# (`sac.learner_conv_impl`); the default of these functions is "xla".
-
+# `conv3x3_shift`: 1.25x the gradient steps/s of the trainer's CPU step for `cpu.yaml`.
 # `conv_impl="native"` computes the whole tower as one hand-written CPU kernel call
 # (`mjxvine.native.tower`, XLA FFI; float32, 8, 16 or 32 features), else as "shift".
+# The default of these functions is "xla"; the trainer's choice is
+# `networks.learner_conv_impl`.
 
-CONV_IMPLS = ("xla", "dot", "shift", "native")
+CONV_IMPLS = ("xla", "shift", "native")
 
 
 def _conv3x3_taps(x: jax.Array, stride: int) -> list[jax.Array]:
@@ -94,52 +85,6 @@ def _conv3x3_taps(x: jax.Array, stride: int) -> list[jax.Array]:
           for i in range(3) for j in range(3)]
 
 
-def im2col(x: jax.Array, stride: int) -> jax.Array:
-  """3x3 VALID patches: (N, H, W, C) -> (N, Ho, Wo, 9 C), Ho = (H - 3) // stride + 1, the
-  last axis ordered (kernel row, kernel column, channel) like an HWIO kernel reshaped to
-  (9 C, F)."""
-  return jnp.concatenate(_conv3x3_taps(x, stride), axis=-1)
-
-
-def _patch_dot(p: jax.Array, kernel: jax.Array) -> jax.Array:
-  """(N, Ho, Wo, 9 C) patches times an HWIO (3, 3, C, F) kernel -> (N, Ho, Wo, F)."""
-  return jax.lax.dot_general(p, kernel.reshape(-1, kernel.shape[-1]),
-                             (((3,), (0,)), ((), ())))
-
-
-@partial(jax.custom_vjp, nondiff_argnums=(2,))
-def conv3x3_dot(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-  """A 3x3 VALID conv, NHWC x HWIO -> NHWC, as im2col and one dot: x (N, H, W, C),
-  kernel (3, 3, C, F) -> (N, Ho, Wo, F). Equal to `lax.conv_general_dilated` to rounding;
-  its gradient is dots and slices as well (never XLA's convolution)."""
-  return _patch_dot(im2col(x, stride), kernel)
-
-
-def _conv3x3_dot_fwd(x, kernel, stride):
-  return conv3x3_dot(x, kernel, stride), (x, kernel)
-
-
-def _conv3x3_dot_bwd(stride, res, dy):
-  x, kernel = res
-  _, h, w, _ = x.shape
-  _, ho, wo, f = dy.shape
-  # d kernel: patches^T dy, one dot contracting over N * Ho * Wo (the patches are rebuilt
-  # from x rather than kept: slices are cheap, a 9x larger residual is not).
-  p = im2col(x, stride).reshape(-1, kernel.shape[0] * kernel.shape[1] * kernel.shape[2])
-  dk = jax.lax.dot_general(p, dy.reshape(-1, f), (((0,), (0,)), ((), ())))
-  # d x: the transposed conv, i.e. a stride-1 conv of dy (dilated by the stride and padded
-  # by 2, plus the rows and columns the strided conv skipped) with the flipped kernel.
-  eh, ew = h - (stride * (ho - 1) + 3), w - (stride * (wo - 1) + 3)
-  zero = jnp.zeros((), dy.dtype)
-  dyp = jax.lax.pad(dy, zero, ((0, 0, 0), (2, 2 + eh, stride - 1), (2, 2 + ew, stride - 1),
-                               (0, 0, 0)))
-  dx = _patch_dot(im2col(dyp, 1), jnp.flip(kernel, (0, 1)).transpose(0, 1, 3, 2))
-  return dx.astype(x.dtype), dk.reshape(kernel.shape).astype(kernel.dtype)
-
-
-conv3x3_dot.defvjp(_conv3x3_dot_fwd, _conv3x3_dot_bwd)
-
-
 def _is_tower_conv(rhs, window_strides, padding, lhs_dilation, rhs_dilation,
                    feature_group_count) -> bool:
   """Whether `lax.conv_general_dilated`'s arguments (as `nn.Conv` passes them) are one of
@@ -147,18 +92,6 @@ def _is_tower_conv(rhs, window_strides, padding, lhs_dilation, rhs_dilation,
   return (rhs.shape[:2] == (3, 3) and padding == "VALID" and len(set(window_strides)) == 1
           and all(d == 1 for d in (lhs_dilation or ()) + (rhs_dilation or ()))
           and feature_group_count == 1)
-
-
-def _dot_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None,
-                              rhs_dilation=None, dimension_numbers=None,
-                              feature_group_count=1, precision=None, **_):
-  """`lax.conv_general_dilated`'s signature (as `nn.Conv` calls it) for the tower's convs
-  only: 3x3 kernels, VALID, equal strides, NHWC, no dilation or groups."""
-  del dimension_numbers, precision  # nn.Conv passes NHWC / HWIO, default precision
-  if not _is_tower_conv(rhs, window_strides, padding, lhs_dilation, rhs_dilation,
-                        feature_group_count):
-    raise NotImplementedError("conv3x3_dot: 3x3 VALID convs with equal strides only")
-  return conv3x3_dot(lhs, rhs, int(window_strides[0]))
 
 
 def lax_conv3x3(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
@@ -194,34 +127,22 @@ def _conv3x3_shift_bwd(stride, res, dy):
 conv3x3_shift.defvjp(_conv3x3_shift_fwd, _conv3x3_shift_bwd)
 
 
-def _shift_conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None,
-                                rhs_dilation=None, dimension_numbers=None,
-                                feature_group_count=1, precision=None, **kw):
-  """`lax.conv_general_dilated`'s signature (as `nn.Conv` calls it): `conv3x3_shift` for
-  a one-channel 3x3 VALID conv with equal strides (the tower's first), else XLA's."""
-  if rhs.shape[2] == 1 and _is_tower_conv(rhs, window_strides, padding, lhs_dilation,
-                                           rhs_dilation, feature_group_count):
+def _shift_conv_general_dilated(lhs, rhs, window_strides, padding, *args, **kw):
+  """`lax.conv_general_dilated` (as `nn.Conv` calls it: its positional and keyword
+  arguments passed on as they come): `conv3x3_shift` for a one-channel 3x3 VALID conv
+  with equal strides and no dilation or groups (the tower's first), else XLA's."""
+  bound = inspect.signature(jax.lax.conv_general_dilated).bind(
+      lhs, rhs, window_strides, padding, *args, **kw).arguments
+  if rhs.shape[2] == 1 and _is_tower_conv(
+      rhs, window_strides, padding, bound.get("lhs_dilation"), bound.get("rhs_dilation"),
+      bound.get("feature_group_count", 1)):
     return conv3x3_shift(lhs, rhs, int(window_strides[0]))
-  return jax.lax.conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation,
-                                      rhs_dilation, dimension_numbers, feature_group_count,
-                                      precision=precision, **kw)
+  return jax.lax.conv_general_dilated(lhs, rhs, window_strides, padding, *args, **kw)
 
 
 # what `nn.Conv` calls instead of `lax.conv_general_dilated`, per `conv_impl` ("xla": none)
 # ("native": where `native.tower` does not compute the tower, as "shift")
-CONV_HOOKS = {"dot": _dot_conv_general_dilated, "shift": _shift_conv_general_dilated,
-               "native": _shift_conv_general_dilated}
-
-
-def max_pool_2x2(x: jax.Array) -> jax.Array:
-  """2x2 max pool, stride 2, VALID, of (N, H, W, C) -> (N, H // 2, W // 2, C) as a reshape
-  and a max. Its gradient goes, like XLA's reduce_window / select_and_scatter, to the
-  first maximum of each window in row-major order (also where several are equal)."""
-  n, h, w, c = x.shape
-  x = x[:, :h // 2 * 2, :w // 2 * 2].reshape(n, h // 2, 2, w // 2, 2, c)
-  a, b, d, e = x[:, :, 0, :, 0], x[:, :, 0, :, 1], x[:, :, 1, :, 0], x[:, :, 1, :, 1]
-  m = jax.lax.stop_gradient(jnp.maximum(jnp.maximum(a, b), jnp.maximum(d, e)))
-  return jnp.where(a == m, a, jnp.where(b == m, b, jnp.where(d == m, d, e)))
+CONV_HOOKS = {"shift": _shift_conv_general_dilated, "native": _shift_conv_general_dilated}
 
 
 def tower_output_size(hw: Sequence[int]) -> tuple[int, ...]:

@@ -1,15 +1,16 @@
 """`python -m mjxvine.train`: SAC on the batched vineyard env, on one or many devices.
 
-  python -m mjxvine.train --config experiments/smoke.yaml --run-dir runs/smoke
+  python -m mjxvine.train --config experiments/smoke.yaml --out runs/smoke
   python -m mjxvine.train --resume runs/smoke --set train.total_env_steps=20000
   python -m mjxvine.train                       # the default run (experiments/default.yaml)
-  python -m mjxvine.train --config experiments/default.yaml --seeds 3 \\
+  python -m mjxvine.train --config experiments/default.yaml --seed 1 --out runs/seed1
+  python -m mjxvine.train --config experiments/default.yaml --num-seeds 3 \\
       --sweep sac.learning_rate=2e-4,1e-3
 
 The command line of `mjxvine.training.loop.train`: it resolves the config (a new run's,
 or a resumed run's own with the keys that may change), checks the run directory, trains,
-and maps each failure to one line and an exit code (`mjxvine.rundir`). `--seeds K` and
-`--sweep` train several members at once (vmap); `--distributed` trains over the devices
+and maps each failure to one line and an exit code (`mjxvine.rundir`). `--num-seeds K`
+and `--sweep` train several members at once (vmap); `--distributed` trains over the devices
 of several processes (`jax.distributed`).
 """
 
@@ -21,21 +22,22 @@ import errno
 import functools
 import json
 import os
-import signal
 import sys
 from pathlib import Path
 
 import jax
 
-from mjxvine.atomic import OutputError, check_output
-from mjxvine.config import (DEFAULT_CONFIG_NAME, PACKAGED_CONFIGS, Config, add_config_args,
-                            config_from_args, enable_compile_cache, resolve_config_path)
+from mjxvine.atomic import OutputError, check_output, command_main
+from mjxvine.config import (DEFAULT_CONFIG_NAME, PACKAGED_CONFIGS, Config, ConfigError,
+                            add_config_args, config_from_args, enable_compile_cache,
+                            resolve_config_path)
+from mjxvine.cli import CommandParser, key_type
 from mjxvine.formatting import first_line
 from mjxvine.rundir import (EXIT_NON_FINITE, EXIT_USAGE, EXIT_WRITE, Interrupted,
                             ResumeRefused, RunDirBusy, WriteError, busy_message, exit_code,
                             lock_holder, write_failure)
 from mjxvine.training.iteration import NonFiniteError
-from mjxvine.training.loop import train
+from mjxvine.training.loop import check_memory, train
 
 # With no --config: the documented default run, shipped inside the package (a copy of
 # experiments/default.yaml), so that it is found however mjxvine was installed.
@@ -46,10 +48,11 @@ _WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO
 
 
 def parser() -> argparse.ArgumentParser:
-  p = argparse.ArgumentParser(prog="python -m mjxvine.train", description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+  p = CommandParser(prog="python -m mjxvine.train", description=__doc__)
   add_config_args(p, default=None)
-  p.add_argument("--run-dir", default=None, help="run directory (default runs/<time>)")
+  p.add_argument("--out", default=None, metavar="RUN_DIR",
+                 help="the new run's directory (default runs/<time>); it must not hold a "
+                 "run yet (continue one with --resume)")
   p.add_argument("--resume", default=None, metavar="RUN_DIR",
                  help="continue an interrupted run from its newest intact checkpoint (else "
                  "its best); --set may change its budget and what runs around the "
@@ -58,11 +61,18 @@ def parser() -> argparse.ArgumentParser:
   p.add_argument("--restart", action="store_true",
                  help="with --resume: when no checkpoint of the run can be restored, start "
                  "it afresh in its directory (its old outputs set aside in previous-<time>/)")
-  p.add_argument("--seeds", type=int, default=None,
-                 help="train K seeds at once (vmap); sets train.num_seeds")
+  p.add_argument("--seed", type=key_type("train.seed"), default=None, metavar="N",
+                 help="the seed of the run's randomness (network weights, exploration, "
+                 "starts, depth noise; the worlds have world.train_seed); sets train.seed, "
+                 "as --set train.seed=N does")
+  p.add_argument("--num-seeds", type=key_type("train.num_seeds"), default=None,
+                 metavar="K", help="train K members at once (vmap), 1-1024, their keys split "
+                 "from train.seed's; sets train.num_seeds")
   p.add_argument("--sweep", action="append", default=[], metavar="SECTION.KEY=V1,V2",
-                 help="also sweep a hyper-parameter at once (vmap; repeatable: a grid); "
-                 "sets train.sweep")
+                 help="also sweep a hyper-parameter at once (vmap); sets train.sweep. "
+                 "Repeatable: values of one key add up (--sweep K=a --sweep K=b is "
+                 "K=a,b), different keys make a grid (every combination, times the seeds; "
+                 "at most 1024 members)")
   p.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
   dist = p.add_argument_group(
       "several processes or hosts (jax.distributed)",
@@ -92,15 +102,18 @@ def resumed_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
   # the same run or a refusal (exit 2): `train` compares it with the config it started
   # with (run.json) before anything is built
   cfg = config_from_args(argparse.Namespace(config=str(resolved), overrides=args.overrides))
-  if args.seeds or args.sweep:
-    p.error("--resume: the seeds and sweep come from the run's config.yaml")
+  if args.seed is not None or args.num_seeds is not None or args.sweep:
+    p.error("--resume: the seed, seeds and sweep come from the run's config.yaml")
+  if args.out:
+    p.error(f"--resume {run_dir} continues the run in its own directory: give no --out")
   check_train_files(p, cfg)
+  check_fits(cfg)
   return cfg, run_dir
 
 
 def new_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
-  """The config of a new run (--config, or the default run's) with --set, --seeds and
-  --sweep, and its run directory."""
+  """The config of a new run (--config, or the default run's) with --seed, --num-seeds,
+  --sweep and --set, and its run directory."""
   say = print if jax.process_index() == 0 else (lambda *a, **k: None)  # process 0 speaks
   if args.config is None:
     args.config = str(DEFAULT_CONFIG)
@@ -108,18 +121,21 @@ def new_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
         "--config picks another)", flush=True)
   else:
     say(f"config: {resolve_config_path(args.config)}", flush=True)
-  extra = [f"train.num_seeds={args.seeds}"] if args.seeds else []
-  if args.sweep:
+  extra = [f"train.seed={args.seed}"] if args.seed is not None else []
+  if args.num_seeds is not None:
+    extra.append(f"train.num_seeds={args.num_seeds}")
+  if args.sweep:  # `config.parse_sweep` adds up the values of a key given twice
     extra.append("train.sweep=" + "; ".join(args.sweep))
   cfg = config_from_args(args, extra)
-  run_dir = Path(args.run_dir or f"runs/{datetime.datetime.now():%Y%m%d-%H%M%S}")
+  run_dir = Path(args.out or f"runs/{datetime.datetime.now():%Y%m%d-%H%M%S}")
   if run_dir.exists() and not run_dir.is_dir():
-    p.error(f"--run-dir {run_dir}: exists and is not a directory")
+    p.error(f"--out {run_dir}: exists and is not a directory")
   if (run_dir / "checkpoints").exists():
-    p.error(f"{run_dir} already holds a run: use --resume {run_dir} or another --run-dir")
+    p.error(f"{run_dir} already holds a run: use --resume {run_dir} or another --out")
   check_train_files(p, cfg)  # before the run directory is made
+  check_fits(cfg)
   try:  # before anything is compiled
-    check_output(run_dir, "--run-dir", directory=True)
+    check_output(run_dir, "--out", directory=True)
   except OutputError as e:
     p.error(str(e))
   return cfg, run_dir
@@ -162,7 +178,7 @@ def run(cfg: Config, run_dir: Path, args) -> int:
 def main(argv=None) -> int:
   """The CLI. Exit codes (`mjxvine.rundir`): 0 done, 2 a bad argument or config, a run
   directory in use or a resume refused, 3 a non-finite loss, 4 a failed write (disk full,
-  ...), 130 / 143 stopped by SIGINT / SIGTERM with a checkpoint written."""
+  ...), 130 / 143 stopped by SIGINT / SIGTERM (the last intact checkpoint kept)."""
   p = parser()
   args = p.parse_args(argv)
   enable_compile_cache()
@@ -179,6 +195,16 @@ def main(argv=None) -> int:
     print(f"error: {busy_message(run_dir)}", file=sys.stderr)
     return EXIT_USAGE
   return run(cfg, run_dir, args)
+
+
+def check_fits(cfg: Config) -> None:
+  """Refuses a run that would not fit in this machine's memory (`loop.check_memory`), in
+  one line (exit 2), before the run directory is made or anything compiled."""
+  try:
+    check_memory(cfg)
+  except ConfigError as e:
+    print(f"config error: {e}", file=sys.stderr)
+    raise SystemExit(2) from None
 
 
 def check_train_files(p: argparse.ArgumentParser, cfg: Config) -> None:
@@ -216,8 +242,6 @@ def _initialize_distributed(p: argparse.ArgumentParser, args) -> None:
 
 
 if __name__ == "__main__":
-  try:
-    sys.exit(main())
-  except KeyboardInterrupt:  # Ctrl-C before the run starts (its own handler takes over)
-    print("interrupted before the run started", file=sys.stderr)
-    sys.exit(exit_code(signal.SIGINT))
+  # SIGINT / SIGTERM at any moment: exit 130 / 143 within seconds; the run's outputs stay
+  # (a resume continues them), a partial checkpoint is removed
+  command_main(main, keep_outputs=True)

@@ -3,13 +3,15 @@
     python -m mjxvine.view --policy runs/RUN                       # lane 1F of the test world
     python -m mjxvine.view --policy policy.npz --world test --lane 4R
     python -m mjxvine.view --policy oracle --world train --lane 2F --noise 0
+    python -m mjxvine.view --policy oracle --robot husky --lane 3R
 
 The policy drives one env with the evaluator's own stepping (`rollout.drive`: the same
 reset, policy call and control step as the protocol, one env), in real time
 (one control step per `env.control_dt` of wall clock, when the machine keeps up); each
 pose is shown in `mujoco.viewer.launch_passive`. When an episode ends the outcome is
 printed and, after a pause, the lane starts again (close the window or Ctrl-C to stop).
-A run directory brings its own config.yaml, as in `mjxvine.evaluate`. The viewer needs a
+A run directory brings its own config.yaml, as in `mjxvine.evaluate`; --robot drives
+another robot, as there. The viewer needs a
 display; without one the CLI says so in one line (`evaluate --video` films headless).
 On macOS run it with `mjpython` (MuJoCo's launcher for the passive viewer).
 """
@@ -20,6 +22,10 @@ import argparse
 import os
 import sys
 import time
+
+from mjxvine.cli import (MEMBER_HELP, ROBOT_POLICY_HELP, WHICH_HELP, CommandParser, key_type,
+                         member_error, member_type)
+from mjxvine.rundir.checkpoints import WHICH
 
 NO_DISPLAY = ("no display: the interactive viewer needs a desktop session (DISPLAY or "
               "WAYLAND_DISPLAY); to watch a run headless, film it: python -m mjxvine.evaluate "
@@ -36,9 +42,9 @@ def has_display() -> bool:
 def _world(spec: str, cfg):
   """--world: "test" (the config's test world), "train" (its first training world), a
   test-world seed, a world .json file or a vineyard file (.geojson, .csv)."""
-  from mjxvine.worlds import generate_world, make_world, world_of
+  from mjxvine.worlds import TEST_WORLD_SEED, generate_world, make_world, world_of
   if spec == "test":
-    return make_world(str(cfg.world.test_seed), cfg.world)
+    return make_world(str(TEST_WORLD_SEED), cfg.world)
   if spec == "train":
     return generate_world("train", cfg.world.train_seed, cfg.world)
   return world_of(spec, cfg)
@@ -46,21 +52,25 @@ def _world(spec: str, cfg):
 
 def parser() -> argparse.ArgumentParser:
   """The command line's flags."""
-  p = argparse.ArgumentParser(prog="python -m mjxvine.view", description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--policy", required=True, help="oracle, random, a run dir or a .npz")
-  p.add_argument("--which", choices=("best", "last"), default="best",
-                 help="with a run dir: its best (default) or last checkpoint")
-  p.add_argument("--member", type=int, default=None,
-                 help="of a run that trained several members: which one (default: the one "
-                      "checkpoints/best follows, member 0)")
-  p.add_argument("--world", default="test",
+  p = CommandParser(prog="python -m mjxvine.view", description=__doc__)
+  p.add_argument("--policy", required=True, metavar="RUN|FILE",
+                 help="oracle, random, a run dir or a .npz policy file; a run dir's "
+                      "config.yaml (an .npz's metadata) gives the camera, networks and env "
+                      "options, --config/--set only override")
+  p.add_argument("--which", choices=WHICH, default="best", help=WHICH_HELP)
+  p.add_argument("--member", type=member_type, default=None, metavar="K", help=MEMBER_HELP)
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml", help=ROBOT_POLICY_HELP)
+  p.add_argument("--world", default="test", metavar="test|train|SEED|FILE",
                  help="test (default), train, a test-world seed, a world .json file or a "
                       "vineyard file (.geojson, .csv: docs/your-vineyard.md)")
   p.add_argument("--lane", default="1F", help="lane and direction, e.g. 4R (default 1F)")
-  p.add_argument("--noise", type=float, default=None,
-                 help="depth noise factor, >= 0 (default: the config's eval.noise_factor)")
-  p.add_argument("--seed", type=int, default=0, help="seed of the depth noise")
+  p.add_argument("--noise", type=key_type("eval.noise_factor"), default=None,
+                 help="depth noise factor, 0-100 (default: the config's eval.noise_factor, "
+                 "which it stands for)")
+  p.add_argument("--seed", type=int, default=0, metavar="N",
+                 help="seed of the episodes' random draws: their depth noise and the random "
+                      "policy's actions, new for each repeat of the lane; the start is fixed "
+                      "(default 0)")
   p.add_argument("--once", action="store_true", help="drive the lane once, then exit")
   from mjxvine.config import add_config_args
   add_config_args(p)
@@ -77,7 +87,9 @@ def load(args):
   from mjxvine.rundir.settings import policy_config
   if args.policy not in ("oracle", "random"):
     check_policy_file(args.policy, args.which)
-  cfg, source = policy_config(args.policy, args.config, args.overrides, args.which)
+  extra = [f"robot.name={args.robot}"] if args.robot else []  # as evaluate applies it
+  cfg, source = policy_config(args.policy, args.config, [*extra, *args.overrides],
+                              args.which)
   world = _world(args.world, cfg)
   ((lane, direction),) = parse_lanes(args.lane, len(world.lanes))
   noise = cfg.eval.noise_factor if args.noise is None else args.noise
@@ -127,12 +139,12 @@ def watch(env, policy, lane: int, direction: str, seed: int, once: bool) -> int:
 
 def main(argv=None) -> int:
   p = parser()
-  args = p.parse_args(argv)
+  args = p.parse_args(argv)  # --noise is checked as eval.noise_factor here
   if not has_display():  # before anything is built: one line
     print(f"error: {NO_DISPLAY}", file=sys.stderr)
     return 2
-  if args.noise is not None and not args.noise >= 0:
-    p.error(f"--noise {args.noise}: the noise factor must be >= 0")
+  if member_error(args.policy, args.member):
+    p.error(member_error(args.policy, args.member))
 
   from mjxvine.config import ConfigError, enable_compile_cache
   from mjxvine.deploy import PolicyError
@@ -151,4 +163,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from mjxvine.atomic import command_main
+  # SIGINT / SIGTERM: 130 / 143 in one line, the outputs of the unfinished set removed
+  command_main(main)

@@ -1,7 +1,7 @@
 """Interrupts one training run again and again, resuming after each interruption, and
 checks that every resume works and that metrics.jsonl ends with each chunk exactly once.
 
-  python scripts/chaos_check.py --run-dir /tmp/chaos --kills 20
+  python scripts/chaos_check.py --out /tmp/chaos --kills 20
 
 Each interruption is kill -9 or SIGTERM (alternating), sent at a random moment (uniform
 in [--min-s, --max-s] seconds after the process starts, so it may fall in start-up,
@@ -28,9 +28,9 @@ DEFAULT = ["--config", "experiments/smoke.yaml", "--no-eval", "--set",
 
 
 def main(argv=None) -> int:
-  p = argparse.ArgumentParser(description=__doc__,
+  p = argparse.ArgumentParser(allow_abbrev=False, description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--run-dir", type=Path, required=True)
+  p.add_argument("--out", dest="run_dir", type=Path, required=True)
   p.add_argument("--kills", type=int, default=20)
   p.add_argument("--min-s", type=float, default=5.0)
   p.add_argument("--max-s", type=float, default=40.0)
@@ -39,7 +39,7 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   rng = random.Random(args.seed)
   base = [sys.executable, "-m", "mjxvine.train"]
-  first = base + (args.train_args or DEFAULT) + ["--run-dir", str(args.run_dir)]
+  first = base + (args.train_args or DEFAULT) + ["--out", str(args.run_dir)]
   resume = base + ["--resume", str(args.run_dir), "--no-eval"]
   log, failures = [], []
   for i in range(args.kills + 1):

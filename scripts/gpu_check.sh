@@ -25,7 +25,7 @@ python - <<'PY' | tee "$RES/device.txt"
 import jax, mujoco; print("jax", jax.__version__, "mujoco", mujoco.__version__, jax.default_backend(),
                           [d.device_kind for d in jax.devices()])
 PY
-TRAIN="--config experiments/jackal.yaml --seeds 3 --set eval.runs_after_train=0"
+TRAIN="--config experiments/jackal.yaml --num-seeds 3 --set eval.runs_after_train=0"
 MEMBERS="0 1 2"
 if [ "${TINY:-0}" = 1 ]; then
   TRAIN="$TRAIN --set world.pool_size=2 --set world.train_length_m=4 --set env.num_envs=4
@@ -33,7 +33,7 @@ if [ "${TINY:-0}" = 1 ]; then
     --set sac.warmup_steps=100 --set sac.grad_steps_per_iter=1 --set train.total_env_steps=300
     --set train.eval_every_chunks=2 --set train.eval_starts=2 --set eval.max_steps=40
     --set world.test_length_m=10 --set train.iters_per_chunk=5 --set train.select_worlds=1
-    --set train.select_runs=1 --set train.select_candidates=2"
+    --set train.select_candidates=2"
   MEMBERS="0"; T_TRAIN=900; T_EVAL=600; MINUTES=10
 else
   # 4 candidates per member (the recipe scores 8): the choice within the step's timeout
@@ -49,7 +49,7 @@ RUN="$RES/jackal-seeds"
 log "training: python -m mjxvine.train $TRAIN --set train.max_minutes=$MINUTES"
 s=$(date +%s)
 XLA_PYTHON_CLIENT_MEM_FRACTION=0.5 timeout $T_TRAIN python -m mjxvine.train $TRAIN \
-  --set train.max_minutes=$MINUTES --run-dir "$RUN" > "$RES/train.log" 2>&1
+  --set train.max_minutes=$MINUTES --out "$RUN" > "$RES/train.log" 2>&1
 log "training: exit $? after $(( $(date +%s) - s )) s wall-clock"
 tr '\r' '\n' < "$RES/train.log" | grep -v "^$" | grep -v "step/s" | tail -12 >> "$RES/gpu_check.log"
 cat "$RUN/best_members/scores.json" >> "$RES/gpu_check.log" 2>/dev/null

@@ -5,7 +5,7 @@ that rules for choosing the best checkpoint can be compared without training aga
       [--steps 50000,90000]
 
 For each RUN/eval_policies/env<steps>.npz, one batched rollout of the validation protocol
-that `train.select_worlds` chooses on (`mjxvine.evaluation.choice.score_policy`): every
+that the choice of checkpoint uses (`mjxvine.evaluation.choice.score_policy`): every
 lane-direction of each validation world (test-kind seeds that the test tables never use)
 with `--runs` runs at the config's noise factor, and rows 1F and 4F of the first
 validation world with 3 runs at each `--noise` factor. Besides, the
@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from mjxvine import networks as nw  # noqa: E402
 from mjxvine.evaluation import choice, paper, policies, starts  # noqa: E402
-from mjxvine.config import Config, load_config, replace  # noqa: E402
+from mjxvine.config import load_config, replace  # noqa: E402
 from mjxvine.env import training_env  # noqa: E402
 from mjxvine.worlds import make_world  # noqa: E402
 
@@ -49,12 +49,14 @@ def score(cfg, path: Path, worlds, runs: int, noise_factors, pool_env, pool_eval
 
 
 def main(argv=None) -> int:
-  p = argparse.ArgumentParser(description=__doc__,
+  p = argparse.ArgumentParser(allow_abbrev=False, description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("run", type=Path)
-  p.add_argument("--worlds", default="100,101,102")
-  p.add_argument("--runs", type=int, default=2)
-  p.add_argument("--noise", default="8,10", help="noise factors of rows 1F and 4F")
+  first = choice.FIRST_WORLD_SEED
+  p.add_argument("--worlds", default=f"{first},{first + 1},{first + 2}")
+  p.add_argument("--runs", type=int, default=choice.RUNS)
+  p.add_argument("--noise", default=",".join(f"{k:g}" for k in choice.NOISE_FACTORS),
+                 help="noise factors of rows 1F and 4F")
   p.add_argument("--pool-starts", type=int, default=16)
   p.add_argument("--steps", default="", help="only these env steps (comma-separated)")
   args = p.parse_args(argv)
@@ -120,8 +122,7 @@ RULES = {
                                          -r["pool_noise1"]["mae_m"]),
     # the choice's order (mjxvine.evaluation.choice.rank), over every scored policy (not
     # its top candidates only)
-    "validation: the bar, then -MAE": lambda r: choice.rank(
-        r, Config().train.select_success_bar),
+    "validation: the bar, then -MAE": lambda r: choice.rank(r, choice.SUCCESS_BAR),
 }
 
 

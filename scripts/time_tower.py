@@ -5,7 +5,7 @@
   python scripts/time_tower.py --size 113 --batch 256 --features 32   # the paper's
 
 Prints the median ms of `--calls` calls of each, jitted alone with the learner's compiler
-options (`sac.learner_compiler_options`), and the native build (`avx2` or `avx512`).
+options (`networks.learner_compiler_options`), and the native build (`avx2` or `avx512`).
 """
 
 import argparse
@@ -17,7 +17,7 @@ import numpy as np
 
 from mjxvine import native
 from mjxvine import networks as nw
-from mjxvine.sac import learner_compiler_options
+from mjxvine.networks import learner_compiler_options
 
 IMPLS = ("xla", "shift", "native")
 
@@ -33,7 +33,7 @@ def _programs(impl: str, features: int, x: jax.Array, w: jax.Array):
 
 
 def main():
-  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
   p.add_argument("--size", type=int, default=41, help="image height and width (pixels)")
   p.add_argument("--batch", type=int, default=64)
   p.add_argument("--features", type=int, nargs="+", default=[8, 16])

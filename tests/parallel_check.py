@@ -14,13 +14,15 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
-from mjxvine.training import parallel, programs  # noqa: E402
+from mjxvine.training import iteration, parallel, programs  # noqa: E402
+
+# chunks as one lax.scan program, as on accelerators (the CPU's own path is a host loop)
+iteration.scan_chunks = lambda: True
 from mjxvine.config import load_config  # noqa: E402
 
 OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=4", "env.max_steps=8",
              "sac.batch_size=16", "sac.buffer_size=256", "sac.warmup_steps=20",
              "sac.hidden=16", "sac.conv_features=4", "train.iters_per_chunk=5",
-             "train.chunk_loop=scan",
              "world.pool_size=2", "world.train_length_m=6"]
 
 

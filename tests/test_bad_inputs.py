@@ -31,7 +31,7 @@ def _one_line(capsys, *words) -> str:
 ])
 def test_export_refuses_an_output_it_cannot_write(tmp_path, capsys, out, words):
   (tmp_path / "file.txt").write_text("x")
-  code = export_main(["--checkpoint", str(POLICY), "--format", "onnx",
+  code = export_main(["--policy", str(POLICY), "--format", "onnx",
                       "--out", out.format(tmp=tmp_path)])
   assert code == 2
   _one_line(capsys, *words)
@@ -47,7 +47,7 @@ def test_export_keeps_the_previous_file_when_the_disk_is_full(tmp_path, capsys, 
     raise OSError(errno.ENOSPC, "No space left on device")
 
   monkeypatch.setattr(onnx, "save", full_disk)
-  assert export_main(["--checkpoint", str(POLICY), "--format", "onnx", "--out", str(out)]) == 4
+  assert export_main(["--policy", str(POLICY), "--format", "onnx", "--out", str(out)]) == 4
   _one_line(capsys, "could not write", "No space left on device", "unchanged")
   assert out.read_bytes() == b"the previous policy"
   assert [p.name for p in tmp_path.iterdir()] == ["policy.onnx"]  # no temporary left
@@ -60,7 +60,7 @@ def test_export_keeps_the_previous_file_when_the_disk_is_full(tmp_path, capsys, 
 def test_export_names_a_file_that_is_not_a_policy(tmp_path, capsys, make, words):
   make(tmp_path / "x")
   path = next(tmp_path.iterdir())
-  assert export_main(["--checkpoint", str(path), "--format", "onnx"]) == 2
+  assert export_main(["--policy", str(path), "--format", "onnx"]) == 2
   _one_line(capsys, str(path), *words)
 
 
@@ -68,8 +68,8 @@ def test_worlds_refuses_an_output_and_seeds_it_cannot_use(tmp_path, capsys):
   assert worlds_main(["--out", "/proc/mjxvine-world"]) == 2
   _one_line(capsys, "--out /proc/mjxvine-world", "cannot write")
   for seed in ("-5", "99999999999"):
-    assert worlds_main(["--out", str(tmp_path / "w"), "--seed", seed]) == 2
-    _one_line(capsys, f"--seed {seed}", "0 to 4294967295")
+    assert worlds_main(["--out", str(tmp_path / "w"), "--world", seed]) == 2
+    _one_line(capsys, f"--world {seed}", "0 to 4294967295")
   assert not (tmp_path / "w" / "world.xml").exists()
 
 
@@ -77,14 +77,14 @@ def test_train_refuses_a_binary_config_and_an_unwritable_run_dir(tmp_path, capsy
   config = tmp_path / "config.yaml"
   config.write_bytes(bytes(range(256)) * 4)
   with pytest.raises(SystemExit) as exit_info:
-    train_main(["--config", str(config), "--run-dir", str(tmp_path / "run")])
+    train_main(["--config", str(config), "--out", str(tmp_path / "run")])
   assert exit_info.value.code == 2
   _one_line(capsys, str(config), "not a text file")
   with pytest.raises(SystemExit) as exit_info:
-    train_main(["--config", "experiments/smoke.yaml", "--run-dir", "/proc/mjxvine-run"])
+    train_main(["--config", "experiments/smoke.yaml", "--out", "/proc/mjxvine-run"])
   assert exit_info.value.code == 2
   err = capsys.readouterr().err
-  assert "--run-dir /proc/mjxvine-run: cannot write" in err and "Traceback" not in err
+  assert "--out /proc/mjxvine-run: cannot write" in err and "Traceback" not in err
 
 
 def test_a_world_file_that_is_not_one_is_named(tmp_path):

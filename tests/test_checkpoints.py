@@ -101,7 +101,7 @@ def test_relative_paths(runs, monkeypatch, tmp_path, capsys):
   # the export CLI finds the relative run's checkpoint, and refuses its tiny actor, which
   # is not the one the (default) config builds, in one line naming an array
   out = tmp_path / "policy.npz"
-  assert export.main(["--checkpoint", "run", "--which", "last", "--out", str(out)]) == 2
+  assert export.main(["--policy", "run", "--which", "last", "--out", str(out)]) == 2
   err = capsys.readouterr().err
   assert "does not fit the config: dense0/bias (4,) (the config's (256,))" in err
   assert len(err.splitlines()) == 1 and not out.exists()
@@ -109,7 +109,7 @@ def test_relative_paths(runs, monkeypatch, tmp_path, capsys):
 
 def test_missing_run_directory_is_one_line_with_status_2(runs, monkeypatch, tmp_path, capsys):
   monkeypatch.chdir(runs)
-  assert export.main(["--checkpoint", "runs/nope"]) == 2
+  assert export.main(["--policy", "runs/nope"]) == 2
   err = capsys.readouterr().err
   assert err == "export error: no such run directory: runs/nope\n"
   assert evaluate.main(["--policy", "runs/nope", "--which", "last", "--out", str(tmp_path)]) == 2
@@ -119,7 +119,7 @@ def test_missing_run_directory_is_one_line_with_status_2(runs, monkeypatch, tmp_
     policies.load_actor_params("runs/nope", env=None)
   # a directory without checkpoints says so
   (runs / "empty").mkdir(exist_ok=True)
-  assert export.main(["--checkpoint", "empty"]) == 2
+  assert export.main(["--policy", "empty"]) == 2
   assert "empty: no orbax checkpoint inside" in capsys.readouterr().err
   assert evaluate.main(["--policy", "empty", "--out", str(tmp_path)]) == 2
   assert "no orbax checkpoint" in capsys.readouterr().err
@@ -200,13 +200,13 @@ def test_checkpoints_save_restore_and_load_the_policy(tiny_actor, tmp_path, caps
     checkpoint.restore_actor_params(broken)
   with pytest.raises(PolicyError, match="not a readable orbax checkpoint"):
     policies.load_actor_params(broken, env=None)
-  assert export.main(["--checkpoint", str(broken)]) == 2
+  assert export.main(["--policy", str(broken)]) == 2
   err = capsys.readouterr().err
   assert "not a readable orbax checkpoint" in err and len(err.splitlines()) == 1
 
 
 def test_a_member_of_a_seeds_run(tmp_path):
-  """A --seeds run saves stacked params: one member is picked, by default the one
+  """A --num-seeds run saves stacked params: one member is picked, by default the one
   checkpoints/best follows (best.json may name it), and a member it lacks is one line."""
   stacked = jax.tree.map(lambda *x: np.stack(x), _actor(10), _actor(11), _actor(12))
   manager = ocp.CheckpointManager((tmp_path / "checkpoints").resolve(),
@@ -227,7 +227,7 @@ def test_a_member_of_a_seeds_run(tmp_path):
 
 
 def test_each_member_keeps_its_own_best_policy(tmp_path, tiny_actor):
-  """A --seeds run writes each member's best actor (by its own evaluations) as a policy
+  """A --num-seeds run writes each member's best actor (by its own evaluations) as a policy
   file; a worse evaluation keeps the file, and the files load with numpy alone."""
   from mjxvine.config import load_config
   from mjxvine.deploy import NumpyPolicy

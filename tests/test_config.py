@@ -100,17 +100,33 @@ def test_sweep_grid_and_its_errors():
 
 
 def test_new_choices_are_checked():
-  assert load_config(None, ["env.start_directions=forward"]).env.start_directions == "forward"
-  with pytest.raises(ConfigError, match="^env.start_directions"):
-    load_config(None, ["env.start_directions=sideways"])
+  assert load_config(None, ["env.yaw_reference=world"]).env.yaw_reference == "world"
+  with pytest.raises(ConfigError, match="^env.yaw_reference"):
+    load_config(None, ["env.yaw_reference=sideways"])
   with pytest.raises(ConfigError, match="^sac.reward_scale"):
     load_config(None, ["sac.reward_scale=0"])
-  # the mirror negates the yaw input: wrong for a world yaw measured from an offset
   assert load_config(None, ["sac.mirror_augment=true"]).sac.mirror_augment
-  for key in ("mirror_augment", "mirror_average"):
-    with pytest.raises(ConfigError, match=f"^sac.{key}.*yaw_offset_deg"):
-      load_config(None, [f"sac.{key}=true", "env.yaw_reference=world",
-                         "env.yaw_offset_deg=90"])
+
+
+def test_removed_keys_are_one_line_naming_the_release_that_had_them(tmp_path):
+  """A config file or --set that names a key of an earlier release fails in one line
+  naming the key and the release; a run's or a policy's recorded config (`base`) drops
+  it at the value that kept it off, moves a renamed one, and refuses one that was on."""
+  from mjxvine.config import MOVED_KEYS, RELEASE_WITH_REMOVED, REMOVED_KEYS
+  assert len(REMOVED_KEYS) >= 27 and "0.2.0" in RELEASE_WITH_REMOVED
+  for key in ("sac.image_shift_px", "env.start_along", "train.chunk_loop", "sac.conv_impl"):
+    with pytest.raises(ConfigError, match=f"^{key}: (removed|renamed).*0.2.0") as e:
+      load_config(None, [f"{key}=1"])
+    assert "\n" not in str(e.value)
+    (tmp_path / "old.yaml").write_text(f"{key.split('.')[0]}:\n  {key.split('.')[1]}: 1\n")
+    with pytest.raises(ConfigError, match=f"^{key}: "):
+      load_config(tmp_path / "old.yaml")
+  recorded = {"sac": {"image_shift_px": 0, "conv_impl": "native", "eps_decay": 0.992},
+              "env": {"start_along": [0.0, 0.6]}}
+  cfg = load_config(None, (), recorded)
+  assert cfg.train.conv_impl == "native" and MOVED_KEYS["sac.conv_impl"] == "train.conv_impl"
+  with pytest.raises(ConfigError, match="^sac.image_shift_px = 2: .*0.2.0"):
+    load_config(None, (), {"sac": {"image_shift_px": 2}})
 
 
 def test_shipped_configs_match_experiments():
@@ -139,6 +155,6 @@ def test_train_without_config_uses_the_packaged_default(tmp_path, monkeypatch, c
   seen = {}
   monkeypatch.setattr(train_mod, "train", lambda cfg, run_dir, **kw: seen.update(cfg=cfg) or {})
   monkeypatch.chdir(tmp_path)
-  assert train_mod.main(["--run-dir", "r"]) == 0
+  assert train_mod.main(["--out", "r"]) == 0
   assert capsys.readouterr().out.startswith(f"config: {train_mod.DEFAULT_CONFIG} (the default")
   assert seen["cfg"] == load_config(train_mod.DEFAULT_CONFIG)

@@ -178,9 +178,14 @@ def test_bad_files(exported, tmp_path):
   with pytest.raises(err, match="cut.npz: not a valid policy file"):
     deploy.NumpyPolicy.load(tmp_path / "cut.npz")
   # numpy's own error for these suggests allow_pickle=True: never for a policy file
-  np.savez(tmp_path / "objects.npz", a=np.array([{"x": 1}], dtype=object))
-  with pytest.raises(err, match=r"not a valid policy file \(holds pickled object arrays\)"):
+  objects = {"dense0/kernel": np.array([{"x": 1}], dtype=object)}
+  _rewrite(src, tmp_path / "objects.npz", arrays_update=objects)
+  with pytest.raises(err, match=r"not a valid policy file \(dense0/kernel.npy holds pickled "
+                     r"object arrays\)"):
     deploy.NumpyPolicy.load(tmp_path / "objects.npz")
+  np.savez(tmp_path / "other.npz", a=np.array([{"x": 1}], dtype=object))  # never read
+  with pytest.raises(err, match="no __meta__ entry: not an mjxvine policy file"):
+    deploy.NumpyPolicy.load(tmp_path / "other.npz")
   with pytest.raises(err, match="format version 99"):
     deploy.NumpyPolicy.load(_rewrite(src, tmp_path / "v99.npz", meta_update={"format_version": 99}))
   with pytest.raises(err, match="lacks arrays: dense1/kernel"):
@@ -195,8 +200,30 @@ def test_bad_files(exported, tmp_path):
   assert issubclass(err, deploy.PolicyError) and issubclass(err, ValueError)
 
 
+def test_reading_a_policy_file_reads_what_it_needs(exported, tmp_path):
+  """read_policy_file gives every actor array (log_std too: evaluation rebuilds the actor
+  from them); NumpyPolicy.load reads only __meta__ and the arrays it computes with; a
+  paper-sized export is far inside the file limits (docs/deployment.md)."""
+  from mjxvine.deploy import numpy_policy
+
+  path = exported[0]
+  arrays, _ = deploy.read_policy_file(path)
+  with np.load(path) as data:
+    assert set(arrays) == set(data.files) - {"__meta__"}
+    for k, v in arrays.items():
+      np.testing.assert_array_equal(v, data[k])
+  assert path.stat().st_size * 100 < numpy_policy.MAX_TOTAL_BYTES
+  assert max(v.nbytes for v in arrays.values()) * 100 < numpy_policy.MAX_ARRAY_BYTES
+  broken = _rewrite(path, tmp_path / "log_std.npz", arrays_update={"log_std/kernel": np.array("x")})
+  with pytest.raises(deploy.PolicyFormatError, match="log_std/kernel.npy of dtype <U1"):
+    deploy.read_policy_file(broken)
+  depth, state = _inputs(2)
+  np.testing.assert_array_equal(deploy.NumpyPolicy.load(broken).action(depth, state),
+                                deploy.NumpyPolicy.load(path).action(depth, state))
+
+
 def test_export_cli_from_orbax_checkpoint(exported, tmp_path, capsys):
-  """`python -m mjxvine.export --checkpoint RUN_DIR` restores the latest step's actor."""
+  """`python -m mjxvine.export --policy RUN_DIR` restores the latest step's actor."""
   import orbax.checkpoint as ocp
 
   path, params, flax_action = exported
@@ -207,16 +234,16 @@ def test_export_cli_from_orbax_checkpoint(exported, tmp_path, capsys):
                         "log_alpha": jnp.float32(0.0)}, "env_steps": step}
     ckpt.save(run / "checkpoints" / str(step) / "state", tree)
   ckpt.wait_until_finished()
-  export.main(["--checkpoint", str(run), "--out", str(tmp_path / "cli.npz")])
+  export.main(["--policy", str(run), "--out", str(tmp_path / "cli.npz")])
   depth, state = _inputs(3, seed=1)
   expected = np.asarray(flax_action(params, {"depth": depth, "state": state}))
   got = deploy.NumpyPolicy.load(tmp_path / "cli.npz").action(depth, state)
   np.testing.assert_allclose(got, expected, atol=1e-5)
   (tmp_path / "empty").mkdir()
   capsys.readouterr()
-  assert export.main(["--checkpoint", str(tmp_path / "empty")]) == 2
+  assert export.main(["--policy", str(tmp_path / "empty")]) == 2
   assert "no orbax checkpoint" in capsys.readouterr().err
-  assert export.main(["--checkpoint", str(tmp_path / "missing")]) == 2
+  assert export.main(["--policy", str(tmp_path / "missing")]) == 2
   assert capsys.readouterr().err == f"export error: no such run directory: {tmp_path / 'missing'}\n"
 
 
@@ -235,7 +262,7 @@ def test_latency_numpy(exported, capsys):
   result = latency.numpy_latency(exported[0], calls=5)
   assert result["calls"] == 5 and 0.0 < result["min_ms"] <= result["median_ms"]
   assert result["median_ms"] <= result["p99_ms"]
-  latency.main([str(exported[0]), "--calls", "3"])
+  latency.main(["--policy", str(exported[0]), "--calls", "3"])
   assert json.loads(capsys.readouterr().out)["calls"] == 3
   assert isinstance(deploy.set_blas_threads(1), bool)
 

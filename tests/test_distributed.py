@@ -27,7 +27,7 @@ TIMING = ("sps", "ups", "chunk_s", "compile_s", "wall")
 
 def _cmd(run, *extra):
   argv = [sys.executable, "-m", "mjxvine.train", "--config", "experiments/smoke.yaml",
-          "--run-dir", str(run), *extra]
+          "--out", str(run), *extra]
   for s in SETS:
     argv += ["--set", s]
   return argv

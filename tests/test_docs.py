@@ -11,8 +11,15 @@ Fenced blocks are collected from README.md, CHANGELOG.md and docs/**/*.md:
   must exist in pyproject.toml; scripts, examples and other repository files named must
   exist; `python -c CODE` runs.
 - ```python: runs in a temporary folder that holds a small exported `policy.npz`.
-- ```yaml: loads as a config file.
-- other languages (```text) are not code.
+- ```yaml: loads as a config file (`mjxvine.config.load_config`), or, when its top-level
+  keys are a robot file's (`body`, `wheels`, ...), as a robot file
+  (`mjxvine.robot_files`).
+- ```csv and ```json: a vineyard file (plants in metres; GeoJSON rows), written to a
+  temporary folder and read by `mjxvine.worlds.geo`, which must find lanes in it.
+- ```text is not code, and must not hold a file sample in disguise (JSON, a mapping, a
+  plant CSV).
+File samples (robot YAML, CSV, GeoJSON) are always loaded: a mark before one is a note,
+not a skip. The files of examples/ are loaded by their readers too.
 
 An HTML comment on the line before a block marks it:
 - `<!-- skip: REASON -->`: not exercised (it needs a GPU, a display, ROS 2, hours);
@@ -114,7 +121,7 @@ def collect(path: Path) -> list[Block]:
 
 
 BLOCKS = [b for f in DOC_FILES for b in collect(f)]
-CODE = [b for b in BLOCKS if b.lang in ("bash", "python", "yaml")]
+CODE = [b for b in BLOCKS if b.lang in ("bash", "python", "yaml", "csv", "json")]
 
 
 def _skip(block: Block):
@@ -372,12 +379,17 @@ def test_inline_command(span):
 
 def test_inline_commands_are_found():
   """The collection sees the commands of prose and of config comments, a span that runs
-  over a line break included (README's GIF command), and expands the placeholders."""
-  assert len(COMMAND_SPANS) >= 50
+  over a line break included, drops a wrapper before `python`, and expands the
+  placeholders."""
+  assert len(COMMAND_SPANS) >= 30
   assert any(s.path.suffix == ".yaml" for s in COMMAND_SPANS)
-  assert any(s.text.startswith("/usr/bin/time") for s in COMMAND_SPANS)
-  assert any(s.path.name == "README.md" and "--gif" in s.text and s.text.endswith("out/gif")
-             for s in COMMAND_SPANS)
+  assert any(s.path.suffix == ".md" for s in COMMAND_SPANS)
+  text = "Run `python -m mjxvine.evaluate --policy RUN --gif\n--out out/gif` first.\n"
+  with mock.patch.object(Path, "read_text", return_value=text):
+    spans = code_spans(ROOT / "x.md", markdown_paragraphs(ROOT / "x.md"))
+  assert [s.text for s in spans] == ["python -m mjxvine.evaluate --policy RUN --gif --out out/gif"]
+  assert [a for _, a in span_commands("/usr/bin/time -v python -m mjxvine.train --out runs/x")] == [
+      ["python", "-m", "mjxvine.train", "--out", "runs/x"]]
   assert [a for _, a in span_commands("python -m mjxvine.view ... [--world test|SEED]")] == [
       ["python", "-m", "mjxvine.view", "--world", "test"],
       ["python", "-m", "mjxvine.view", "--world", "SEED"]]
@@ -430,7 +442,23 @@ def test_python_block(block, policy_dir):
     run_python(block.code, policy_dir)
 
 
-@pytest.mark.parametrize("block", [b for b in CODE if b.lang == "yaml"], ids=lambda b: b.id)
+# --- file samples: configs, robot files, vineyard files -----------------------------------
+
+def is_robot_file(code: str) -> bool:
+  """Whether a YAML sample is a robot file: a mapping of a robot file's top-level keys
+  (`name`, `body`, `wheels`, `camera`, `velocity`) with a `body`."""
+  import yaml
+  from mjxvine.robot_files import SCHEMA
+  doc = yaml.safe_load(code)
+  return isinstance(doc, dict) and "body" in doc and set(doc) <= {"name", *SCHEMA}
+
+
+CONFIGS = [b for b in CODE if b.lang == "yaml" and not is_robot_file(b.code)]
+SAMPLES = [b for b in CODE if b.lang in ("csv", "json")
+           or (b.lang == "yaml" and is_robot_file(b.code))]
+
+
+@pytest.mark.parametrize("block", CONFIGS, ids=lambda b: b.id)
 def test_yaml_block(block, tmp_path):
   _skip(block)
   from mjxvine.config import load_config
@@ -438,14 +466,84 @@ def test_yaml_block(block, tmp_path):
   load_config(tmp_path / "c.yaml")
 
 
+def load_sample(path: Path):
+  """The object the real reader makes of a file sample at `path`: a `RobotSpec` of a
+  robot file, a `Vineyard` of a vineyard file (its lanes checked for the default robot)."""
+  from mjxvine.config import load_config, robot_spec
+  from mjxvine.robot_files import read_robot_file
+  from mjxvine.worlds import geo
+  if path.suffix in (".yaml", ".yml"):
+    return read_robot_file(path)
+  cfg = load_config()
+  return geo.read_vineyard(path, cfg.world, robot_width_m=robot_spec(cfg.robot.name).width)
+
+
+@pytest.mark.parametrize("block", SAMPLES, ids=lambda b: b.id)
+def test_file_sample(block, tmp_path):
+  """A file sample is what its reader accepts: a robot file a robot, a CSV or GeoJSON
+  vineyard a block with at least one lane."""
+  suffix = {"csv": ".csv", "json": ".geojson", "yaml": ".yaml"}[block.lang]
+  path = tmp_path / f"sample{suffix}"
+  path.write_text(block.code)
+  loaded = load_sample(path)
+  if block.lang != "yaml":
+    assert len(loaded.lanes) >= 1, f"{block.id}: no lane"
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in (ROOT / "examples").iterdir()
+                                        if p.suffix in (".yaml", ".geojson", ".csv", ".py")))
+def test_example_file(name):
+  """examples/: robot files and vineyard files load, the ROS 2 parameters are YAML, the
+  node compiles."""
+  import yaml
+  path = ROOT / "examples" / name
+  if path.suffix == ".py":
+    compile(path.read_text(), str(path), "exec")
+  elif path.suffix == ".yaml" and not is_robot_file(path.read_text()):
+    assert isinstance(yaml.safe_load(path.read_text()), dict), name
+  else:
+    assert load_sample(path) is not None
+
+
 # --- the collection itself ----------------------------------------------------------------
 
 def test_every_block_is_known():
   """Code blocks are bash, python, yaml or text; marks name a reason."""
   for b in BLOCKS:
-    assert b.lang in ("bash", "python", "yaml", "text"), f"{b.id}: ```{b.lang}"
+    assert b.lang in ("bash", "python", "yaml", "csv", "json", "text"), f"{b.id}: ```{b.lang}"
     assert b.mark is None or b.reason
   assert len(CODE) >= 40
+
+
+def _file_in_disguise(code: str) -> bool:
+  """Whether a ```text block holds a file sample: a JSON object, a plant CSV, a YAML
+  mapping."""
+  import json
+
+  import yaml
+  try:
+    if isinstance(json.loads(code), dict):
+      return True
+  except ValueError:
+    pass
+  if code.lstrip().lower().startswith("row,"):
+    return True
+  try:
+    return isinstance(yaml.safe_load(code), dict)
+  except yaml.YAMLError:
+    return False
+
+
+def test_file_samples_are_fenced_by_format():
+  """Samples of a file format are fenced as csv, json or yaml, so that they are loaded; the
+  guides hold each kind (a CSV, a GeoJSON, a robot file and a config)."""
+  hidden = [b.id for b in BLOCKS if b.lang == "text" and _file_in_disguise(b.code)]
+  assert not hidden, f"file samples fenced as text: {hidden}"
+  assert _file_in_disguise('{"type": "FeatureCollection"}\n')
+  assert _file_in_disguise("row,x_m,y_m\nA,0,0\n")
+  assert not _file_in_disguise("compiling... done in 12 s\n")
+  kinds = {b.lang for b in SAMPLES} | {"config" for _ in CONFIGS[:1]}
+  assert kinds == {"csv", "json", "yaml", "config"}, kinds
 
 
 def test_no_reference_outside_the_repository():
@@ -499,6 +597,39 @@ def test_slow_block_runs(block, slow_dir):
     r = subprocess.run([sys.executable, *argv[1:]], cwd=tmp_path, capture_output=True,
                        text=True, timeout=900, env={**os.environ, **env})
     assert r.returncode == 0, f"{shlex.join(argv)}:\n{r.stderr[-3000:]}"
+
+
+# The Markdown of the repository stays short: all of it, and the guides' share (docs/*.md,
+# CHANGELOG.md and any Markdown outside docs/results/ and README.md).
+MAX_MARKDOWN_LINES, MAX_GUIDE_LINES = 5000, 2300
+SKIP_DIRS = {".git", ".pytest_cache", ".venv", "venv", "node_modules", "build", "dist"}
+
+
+def markdown_lines() -> dict[str, int]:
+  """Lines of every Markdown file of the repository, by path relative to it."""
+  return {str(f.relative_to(ROOT)): len(f.read_text().splitlines())
+          for f in ROOT.rglob("*.md")
+          if not SKIP_DIRS & set(f.relative_to(ROOT).parts[:-1])
+          and not f.relative_to(ROOT).parts[0].endswith(".egg-info")}
+
+
+def test_the_documentation_stays_short():
+  lines = markdown_lines()
+  guides = {f: n for f, n in lines.items()
+            if f != "README.md" and not f.startswith("docs/results/")}
+  assert "docs/training.md" in guides and "CHANGELOG.md" in guides
+  assert sum(guides.values()) <= MAX_GUIDE_LINES, sorted(guides.items(), key=lambda x: -x[1])
+  assert sum(lines.values()) <= MAX_MARKDOWN_LINES, sorted(lines.items(), key=lambda x: -x[1])[:10]
+
+
+def test_the_citation_names_the_version():
+  """CITATION.cff cites the version the package reports, and the paper it reproduces."""
+  import yaml
+
+  import mjxvine
+  cff = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+  assert str(cff["version"]) == mjxvine.__version__
+  assert "arXiv:2206.14155" in str(cff["references"])
 
 
 def test_the_index_lists_every_page():

@@ -1,10 +1,14 @@
 """The figures of the README's results table and of every table of
-docs/results/reproduction.md are read from the records under docs/results/.
+docs/results/reproduction.md (the shipped agent's page) are read from the records under
+docs/results/: `shipped-agent/` (the run of models/jackal.npz), `shipped-recipe-seeds/`
+(seeds 1-4 of its recipe, `seedN-*`) and `baselines/` (`oracle-jackal-results.json`).
+Each folder is flat: a run's files are named by its prefix (`shipped-recipe-seeds/seed1-`
++ `suite.json`, `selection.json`, ...; the shipped agent's have none).
 
 Each table has a spec here: for every row (by its first cell) and column, the record a
-cell quotes and the check that reads it: the paper's suite reports (`report.json`), the
-evaluations of held-out, validation and closing worlds (`results.md`-style tables), a run's
-`best.json`, `selection.json`, `metrics.jsonl` and `config.yaml`, and the paper's own
+cell quotes and the check that reads it: the paper's suite reports (`suite.json`), the
+evaluations of held-out and closing worlds (`results.md`-style tables), a run's
+`selection.json`, `metrics.jsonl`, `record.json` and `config.yaml`, and the paper's own
 figures (`mjxvine.evaluation.paper`). Bold (`**`) marks a met target and is not a figure.
 A cell that is not from a record (a target, the machine, a command) names its reason in
 the spec instead, and every cell of a specced table that holds a digit is one or the other.
@@ -13,7 +17,8 @@ lists with "(partial)" after a figure whose rows did not all reach the end (a "(
 at the end of a list may stand for several); a note such as "(world 2 5R 0/5)" names
 lane-directions and their successes, each of which must be so (where a column lists the
 lane-directions below 4/5, exactly those). "The report" section of reproduction.md is the
-shipped policy's suite report as `mjxvine.evaluation.suite.report_markdown` writes it.
+shipped policy's suite report as `mjxvine.evaluation.suite.report_markdown` writes it,
+less its opening paragraph (the page writes its own).
 """
 
 from __future__ import annotations
@@ -29,26 +34,41 @@ import numpy as np
 import pytest
 import yaml
 
-from mjxvine.config import Config, to_dict
+from mjxvine.config import Config
 from mjxvine.evaluation import choice, paper
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
+README = ROOT / "README.md"
 REPRODUCTION = RESULTS / "reproduction.md"
 FACTORS = tuple(paper.PAPER_NOISE)  # the noise test's factors that the paper drove
-NSTEP = ("jackal-nstep-seed0", "jackal-nstep-seed1", "jackal-nstep-seed2")  # 3-step returns
-SEEDS = tuple(f"jackal-taulate-seed{s}" for s in range(5))  # jackal.yaml
-LN = tuple(f"jackal-ln-seed{s}" for s in range(4))  # jackal.yaml without sac.tau_late
-NATIVE = tuple(f"jackal-native-seed{s}" for s in range(4))  # jackal-ln without LayerNorm
-BATCH128 = tuple(f"jackal-b128-seed{s}" for s in (1, 2, 3))  # jackal.yaml, batch 128, 4 steps
-SHIPPED = SEEDS[0]            # the run of models/jackal.npz
-BEFORE = LN[0]                # the policy shipped before it
-GAPS = "`jackal-gaps`, shipped before `jackal-native`, seeds 0, 1, 2"  # its section
-LN_SECTION = "`jackal-ln`, the policy shipped before, seeds 0, 1, 2, 3"
-NATIVE_SECTION = "`jackal-native`, shipped before `jackal-ln`, seeds 0, 1, 2, 3"
-BATCH128_SECTION = "A batch of 128 on the shipped recipe, seeds 1, 2, 3"
-BAR = Config().train.select_success_bar  # the choice's bar: no recipe sets another
+# A run is the prefix of its files' paths under docs/results/ (f"{run}selection.json").
+SHIPPED = "shipped-agent/"    # the run of models/jackal.npz: experiments/jackal.yaml, seed 0
+SEEDS = (SHIPPED, *(f"shipped-recipe-seeds/seed{s}-" for s in range(1, 5)))  # its seeds 0-4
+ORACLE = "baselines/oracle-jackal-results.json"
 HELDOUT = (25, 26, 27)        # test worlds first evaluated after the shipped policy was chosen
+
+
+def success_bar() -> float:
+  """The choice's bar on the validation runs (no recipe sets another): the config's key
+  while there is one, else the module's."""
+  bar = getattr(Config().train, "select_success_bar", None)
+  return bar if bar is not None else getattr(choice, "SUCCESS_BAR", 0.95)
+
+
+def rank(scores: dict) -> tuple:
+  """`choice.rank` with the bar, whether it takes it or knows it."""
+  try:
+    return choice.rank(scores, success_bar())
+  except TypeError:
+    return choice.rank(scores)
+
+
+def meets_bar(scores: dict) -> bool:
+  try:
+    return choice.meets_bar(scores, success_bar())
+  except TypeError:
+    return choice.meets_bar(scores)
 
 
 # --- records --------------------------------------------------------------------------------
@@ -62,8 +82,8 @@ def record(path: str):
   return yaml.safe_load(text) if path.endswith(".yaml") else json.loads(text)
 
 
-def suite(folder: str) -> dict:
-  return record(f"{folder}/report.json")
+def suite(run: str) -> dict:
+  return record(f"{run}suite.json")
 
 
 @functools.cache
@@ -82,12 +102,12 @@ def evaluation(path: str) -> dict[str, dict]:
   return out
 
 
+def heldout_path(world: int) -> str:
+  return f"{SHIPPED}heldout-world{world}.md"
+
+
 def f3(x) -> str:
   return "n/a" if x is None else f"{x:.3f}"
-
-
-def pct(x: float) -> str:
-  return f"{100 * x:.0f} %"
 
 
 def thousands(n: int) -> str:
@@ -292,41 +312,33 @@ def noise_8_10(report: dict) -> Check:
   return exact(f"{at(8)} / {at(10)}")
 
 
-def best_fresh_starts(run: str, *, plain: bool = False) -> Check:
-  """"62 % / 69 % (120,000)": the best checkpoint's fresh starts, forward / reverse."""
-  b = record(f"{run}/best.json")
-  text = f"{pct(b['eval_success_forward'])} / {pct(b['eval_success_reverse'])}"
-  return exact(f"({text} plain, {thousands(b['env_steps'])})" if plain
-               else f"{text} ({thousands(b['env_steps'])})")
+def heldout_rows() -> dict[int, dict[str, tuple[int, int]]]:
+  return {w: {lane: (r["k"], r["n"]) for lane, r in evaluation(heldout_path(w)).items()
+              if lane != "overall"} for w in HELDOUT}
 
 
-def heldout_cell(name: str, world: int) -> Check:
-  """"48/50, 0.045 (partial)" of heldout/<name>-world<N>.md."""
-  o = evaluation(f"heldout/{name}-world{world}.md")["overall"]
+def heldout_cell(world: int) -> Check:
+  """"48/50, 0.045 (partial)" of the held-out world's table."""
+  o = evaluation(heldout_path(world))["overall"]
   return exact(f"{o['success']}, {o['mae']}")
 
 
-def heldout_note(name: str, worlds) -> Check:
+def heldout_note() -> Check:
   """The lane-directions below 4/5 of the held-out worlds, exactly ("none" if none)."""
-  docs = {w: evaluation(f"heldout/{name}-world{w}.md") for w in worlds}
-  rows = {w: {lane: (r["k"], r["n"]) for lane, r in d.items() if lane != "overall"}
-          for w, d in docs.items()}
-  return lambda cell: check_note(cell, rows, complete=True)
+  return lambda cell: check_note(cell, heldout_rows(), complete=True)
 
 
-def heldout_summary(name: str, worlds, *, mae_prefix: str = "MAE ") -> Check:
-  """"145/150 (world 18 3R 0/5), MAE 0.026, 0.020, 0.037 (partial)"."""
-  docs = [evaluation(f"heldout/{name}-world{w}.md") for w in worlds]
-  rows = {w: {lane: (r["k"], r["n"]) for lane, r in d.items() if lane != "overall"}
-          for w, d in zip(worlds, docs)}
+def heldout_summary() -> Check:
+  """"145/150 (world 26 3R 0/5), MAE 0.026, 0.020, 0.037 (partial)"."""
+  docs = [evaluation(heldout_path(w)) for w in HELDOUT]
 
   def check(cell):
-    m = re.match(rf"^(\d+)/(\d+)(?: \(([^()]*)\))?, {mae_prefix}(.*)$", cell)
-    assert m, f"{cell!r}: not 'k/n[ (note)], {mae_prefix}...'"
+    m = re.match(r"^(\d+)/(\d+)(?: \(([^()]*)\))?, MAE (.*)$", cell)
+    assert m, f"{cell!r}: not 'k/n[ (note)], MAE ...'"
     k = sum(d["overall"]["k"] for d in docs)
     n = sum(d["overall"]["n"] for d in docs)
     assert (int(m.group(1)), int(m.group(2))) == (k, n), f"{cell!r}: the records say {k}/{n}"
-    check_note(m.group(3) or "", rows)
+    check_note(m.group(3) or "", heldout_rows())
     maes([(d["overall"]["mae"].removesuffix(" (partial)"),
            "partial" if "partial" in d["overall"]["mae"] else "full") for d in docs])(m.group(4))
   return check
@@ -334,14 +346,14 @@ def heldout_summary(name: str, worlds, *, mae_prefix: str = "MAE ") -> Check:
 
 def selected_candidate(run: str) -> dict:
   """The entry of `selection.json`'s candidates that the run selected."""
-  s = record(f"{run}/selection.json")
+  s = record(f"{run}selection.json")
   return next(c for c in s["candidates"] if c["env_steps"] == s["selected"])
 
 
 def candidate_steps(run: str) -> str:
   """"100k, 110k, 120k, 130k": the candidates' env steps, in the order of the record."""
   return ", ".join(f"{c['env_steps'] // 1000}k"
-                   for c in record(f"{run}/selection.json")["candidates"])
+                   for c in record(f"{run}selection.json")["candidates"])
 
 
 def chosen_validation(run: str) -> Check:
@@ -351,37 +363,25 @@ def chosen_validation(run: str) -> Check:
   return exact(f"{v['success']}/{v['episodes']}, MAE {f3(v['mae_m'])} m")
 
 
-def candidates(run: str) -> Check:
-  """`candidate_steps`, exactly."""
-  return exact(candidate_steps(run))
-
-
-def validation_scores(run: str) -> Check:
-  """"72, 69, 69, 61; 0.040 m": each candidate's validation successes, then the selected
-  one's MAE."""
-  s = record(f"{run}/selection.json")
-  return exact(", ".join(str(c["validation"]["success"]) for c in s["candidates"])
-               + f"; {f3(selected_candidate(run)['validation']['mae_m'])} m")
-
-
-def meeting_the_bar(run: str) -> Check:
-  """"80k (0.047), 40k (0.076)": the candidates that meet the choice's bar
-  (`choice.meets_bar`, the default bar: no recipe sets another) and their validation
-  MAE, in the order of the record."""
-  return exact(", ".join(f"{c['env_steps'] // 1000}k ({f3(c['validation']['mae_m'])})"
-                         for c in record(f"{run}/selection.json")["candidates"]
-                         if choice.meets_bar(c["validation"], BAR)) or "none")
+def seeds_range() -> Check:
+  """README: "world 0 250/250 at MAE 0.019-0.033; worlds 1-3 749/750" over seeds 0-4."""
+  reports = [suite(run) for run in SEEDS]
+  w0 = [overall(r, 0) for r in reports]
+  w123 = [overall(r, w) for r in reports for w in (1, 2, 3)]
+  mae = [o["mae_m_rows"] for o in w0]
+  return exact(f"world 0 {sum(o['success'] for o in w0)}/{sum(o['runs'] for o in w0)} at MAE "
+               f"{f3(min(mae))}-{f3(max(mae))}; worlds 1-3 "
+               f"{sum(o['success'] for o in w123)}/{sum(o['runs'] for o in w123)}")
 
 
 def test_every_recorded_choice_is_what_rank_chooses():
-  """Each selection.json under docs/results selected what `choice.rank` selects today (the
-  bar of today's default: records from before it have none), so a recipe beside its
-  record still reproduces the policy it names."""
-  records = sorted(RESULTS.glob("**/selection.json"))
-  assert len(records) >= 9
+  """Each `*selection.json` under docs/results selected what `choice.rank` selects today, so
+  that the recipe still chooses the policy its record names."""
+  records = sorted(RESULTS.glob("**/*selection.json"))
+  assert len(records) == len(SEEDS)
   for path in records:
     sel = json.loads(path.read_text())
-    best = max(sel["candidates"], key=lambda c: choice.rank(c["validation"], BAR))
+    best = max(sel["candidates"], key=lambda c: rank(c["validation"]))
     assert best["env_steps"] == sel["selected"], path
 
 
@@ -402,17 +402,16 @@ MACHINE = "the machine and versions the run used; no record names them"
 COMMAND = "the command, not a figure"
 WHICH = "which config and seeds, not figures"
 NONE = "no figure"
-# The seeds tables' target column: the project's goals, but where they quote the paper.
+# The seeds table's target column: the project's goals, but where they quote the paper.
 SEED_TARGETS = {
     "noise 1F / 4F at factors 2, 4, 6, 8, 10": exact(">= " + PAPER_NOISE_TEXT),
     "Husky 1F / 4F": exact(f"{paper.ROBOT_RUNS}/{paper.ROBOT_RUNS} each, MAE <= "
                            f"{_H[0][1]} / {_H[1][1]}"),
-    "test world 0: success": TARGET, "test world 0: MAE / RMSE (mean of rows)": TARGET,
-    "test world 0: MAE (mean of rows)": TARGET, "test worlds 1, 2, 3: success": TARGET,
-    "test worlds 1, 2, 3: MAE": TARGET}
+    "test world 0: success": TARGET, "test world 0: MAE (mean of rows)": TARGET,
+    "test worlds 1, 2, 3: success": TARGET, "test worlds 1, 2, 3: MAE": TARGET}
 
 
-# --- the specs: table row -> one check (or reason) per column ------------------------------
+# --- the tables ---------------------------------------------------------------------------------
 
 @dataclass
 class Table:
@@ -446,16 +445,14 @@ def tables(path: Path) -> list[Table]:
   return out
 
 
-def _max_minutes(run: str) -> str:
-  return f"{record(f'{run}/config.yaml')['train']['max_minutes']:g}"
+# --- the specs: table row -> one check (or reason) per column ------------------------------
 
-
-def _readme_suite(folder: str) -> dict:
+def _readme_suite(run: str) -> dict:
   """README's columns of a suite report."""
-  r = suite(folder)
+  r = suite(run)
   return {"world 0: success": world0(r), "MAE / RMSE m": mae_rmse(overall(r, 0)),
           "worlds 1, 2, 3": successes(r), "noise test at factor 8 / 10": noise_8_10(r),
-          "policy (config)": WHICH, "trained on": MACHINE}
+          "agent": WHICH}
 
 
 def _readme_single(path: str) -> dict:
@@ -467,107 +464,38 @@ def _readme_single(path: str) -> dict:
        "status": "full" if doc["overall"]["success"] == doc["overall"]["runs"] else "partial"}
   return {"world 0: success": exact(f"{doc['overall']['success']}/{doc['overall']['runs']}"),
           "MAE / RMSE m": mae_rmse(o, "mae", "rmse", "status"),
-          "worlds 1, 2, 3": exact("-"), "noise test at factor 8 / 10": exact("-")}
-
-
-def _joined(*columns: dict) -> dict:
-  """README cells of several seeds, "; "-separated, each checked by its own column."""
-  def joined(col):
-    def check(cell):
-      parts = cell.split("; ")
-      assert len(parts) == len(columns), f"{cell!r}: {len(columns)} seeds"
-      for part, c in zip(parts, columns):
-        c[col](part)
-    return check
-  return {col: joined(col) if callable(check) else check for col, check in columns[0].items()}
+          "worlds 1, 2, 3": exact("-"), "noise test at factor 8 / 10": exact("-"),
+          "seeds 0-4 of its recipe": exact("-")}
 
 
 def readme_spec() -> dict[str, dict]:
   """README's results table: row (first cell) -> column -> check or reason."""
-  end_to_end = (RESULTS / "jackal-gaps-seed0/end-to-end/README.md").read_text()
-  total = re.search(r"the whole command\*\* \| \*\*(\d+) min \d+ s\*\*", end_to_end).group(1)
-  cpu_camera = record("cpu-hour/config.yaml")["camera"]
-  gaps = ("jackal-gaps-seed0", "jackal-gaps-seed1", "jackal-gaps-seed2")
-  assert len({_max_minutes(r) for r in gaps}) == 1
   return {
       "the paper's SAC agent": {
           "world 0: success": PAPER_SUCCESS, "MAE / RMSE m": exact(f"{P[0]:.3f} / {P[1]:.3f}"),
           "worlds 1, 2, 3": exact("-"),
           "noise test at factor 8 / 10": exact(" / ".join(
-              f"{sum(paper.PAPER_NOISE[k])}/{2 * paper.NOISE_RUNS}" for k in (8, 10)))},
-      "`models/jackal.npz` (`jackal.yaml`, seed 0)": {
-          **_readme_suite(f"{SHIPPED}/suite"),
-          "wall-clock": exact(minutes_seconds(record(f"{SHIPPED}/record.json")["wall_s"])
-                              + " (end to end, alone)")},
-      "`jackal.yaml`, seeds 1, 2, 3, 4": {
-          **_joined(*(_readme_suite(f"{run}/suite") for run in SEEDS[1:])),
-          "wall-clock": exact("shared")},
-      "`jackal-ln` (no slower late target), seeds 0-3: seed 0 shipped before": {
-          **_joined(*(_readme_suite(f"{run}/suite") for run in LN)),
-          "wall-clock": exact(minutes_seconds(record(f"{BEFORE}/record.json")["wall_s"])
-                              + " (seed 0, end to end)")},
-      "`jackal-native` (no LayerNorm either), seeds 0-3: seed 0 shipped before that": {
-          **_joined(*(_readme_suite(f"{run}/suite") for run in NATIVE)),
-          "wall-clock": exact(minutes_seconds(record(f"{NATIVE[0]}/record.json")["wall_s"])
-                              + " (seed 0, end to end)")},
-      "`jackal-gaps` (`shift` tower), seeds 0, 1, 2: seed 0 shipped before that": {
-          **_joined(*(_readme_suite(f) for f in ("jackal-gaps-seed0/suite",
-                                                 "jackal-gaps-seed1/suite-selected",
-                                                 "jackal-gaps-seed2/suite-selected"))),
-          "wall-clock": exact(f"{total} min; {_max_minutes(gaps[0])} min of training each")},
-      "`jackal/recipe.yaml`, seed 0 (shipped earlier)": {
-          **_readme_suite("jackal/suite"), "wall-clock": exact(f"{_max_minutes('jackal')} min")},
-      # the release (mjxvine 0.1.0) is in no record: the image size is
-      "`cpu.yaml` (at 40x40, mjxvine 0.1.0)": {
-          **_readme_single("cpu-hour/results.json"), "trained on": MACHINE,
-          "policy (config)": contains(f"{cpu_camera['width']}x{cpu_camera['height']}"),
-          "wall-clock": exact(f"{_max_minutes('cpu-hour')} min")},
-      "oracle: pure pursuit on the true pose": _readme_single("eval-oracle_jackal/results.json"),
-  }
-
-
-def _training(run: str) -> dict:
-  """The figures of a "what | figure" training table of `run` (percentages as "62.5 %" or
-  rounded, "56 %")."""
-  metrics = record(f"{run}/metrics.jsonl")
-  best = record(f"{run}/best.json")
-  cfg = record(f"{run}/config.yaml")
-  sps, ups = learning_speeds(metrics)
-  starts = cfg["train"]["eval_starts"]
-
-  def fresh(cell):
-    for key, word in (("eval_success_forward", "forward"), ("eval_success_reverse", "reverse")):
-      x = 100 * best[key]
-      assert f"{x:g} % {word}" in cell or f"{x:.0f} % {word}" in cell, (
-          f"{cell!r}: the record's {word} {x:g} %")
-  closing = evaluation(f"{run}/closing-eval.md")["overall"]["success"]
-  return {
-      "command": COMMAND, "device": MACHINE, "run record": NAMES,
-      "wall-clock": contains(f"{_max_minutes(run)} min of training",
-                             f"`train.max_minutes: {_max_minutes(run)}`",
-                             f"test world 0, {closing}"),
-      "env steps": contains(f"{thousands(metrics[-1]['env_steps'])} (",
-                            f"{np.median(sps):.0f} env-steps/s",
-                            f"{np.median(ups):.0f} gradient steps/s"),
-      "best checkpoint": both(fresh, contains(f"{thousands(best['env_steps'])} env steps",
-                                              f"of {starts} + {starts} fresh starts")),
+              f"{sum(paper.PAPER_NOISE[k])}/{2 * paper.NOISE_RUNS}" for k in (8, 10))),
+          "seeds 0-4 of its recipe": exact("-")},
+      "`models/jackal.npz` (`experiments/jackal.yaml`, seed 0)": {
+          **_readme_suite(SHIPPED), "seeds 0-4 of its recipe": seeds_range()},
+      "oracle: pure pursuit on the true pose": _readme_single(ORACLE),
   }
 
 
 def _suite_column(report: dict, *, every: bool = False) -> dict:
-  """The rows of the "against the targets" and seeds tables, for one suite report."""
+  """The rows of the "against the paper" and seeds tables, for one suite report."""
   o0 = overall(report, 0)
-  w123 = successes(report)
   return {
       "w0": world0_all(report) if every else world0(report),
       "w0 mae rmse": mae_rmse(o0),
       "w0 mae": exact("n/a" if o0["rows_status"] == "n/a" else f3(o0["mae_m_rows"]) + (
           "" if o0["rows_status"] == "full" else " (partial)")),
-      "w123": w123, "w123 mae": world_maes(report), "noise": noise(report),
+      "w123": successes(report), "w123 mae": world_maes(report), "noise": noise(report),
       "husky": husky(report)}
 
 
-# The shipped recipe's targets (the seeds tables' target column): world 0 (successes of
+# The shipped recipe's targets (the seeds table's target column): world 0 (successes of
 # 50, MAE m) and each of worlds 1-3 (the same); besides, the noise test at least the
 # paper's and the Husky every run, at most the paper's MAE.
 WORLD0_TARGET, WORLDS123_TARGET = (49, 0.06), (48, 0.08)
@@ -590,116 +518,44 @@ def meets_targets(report: dict) -> bool:
   return noise_ok and husky_ok
 
 
-def config_changes(run: str, base: str = f"{NATIVE[0]}/config.yaml") -> set[str]:
-  """"`sac.n_step: 3`" for each setting of `run`'s config.yaml that differs from `base`'s
-  in what is trained (the worlds, robot, camera, env, SAC and the env-step budget; not the
-  seed, the evaluations or the choice's settings, which some records predate). A key that
-  `base` predates counts at its default, with which `base` trained."""
-  def flat(doc, prefix=""):
-    for k, v in doc.items():
-      if isinstance(v, dict):
-        yield from flat(v, f"{prefix}{k}.")
-      else:
-        yield f"{prefix}{k}", v
-  a = dict(flat(record(f"{run}/config.yaml")))
-  b = {**dict(flat(to_dict(Config()))), **dict(flat(record(base)))}
-  return {f"`{k}: {yaml.safe_dump(v, default_flow_style=True).splitlines()[0]}`"
-          for k, v in a.items() if b.get(k) != v
-          and (k.split(".")[0] in ("world", "robot", "camera", "env", "sac")
-               or k == "train.total_env_steps")}
-
-
-def lever_row(runs: tuple[str, ...]) -> list:
-  """A row of the levers table: checks of its change, tower, seeds, the seeds that meet
-  every target, world 0's MAE and the test worlds' successes per seed, the wall-clocks."""
-  reports = [suite(f"{run}/suite") for run in runs]
-  seeds = [record(f"{run}/config.yaml")["train"]["seed"] for run in runs]
-  met = [s for s, r in zip(seeds, reports) if meets_targets(r)]
-  changes = set.union(*map(config_changes, runs))
-  towers = {record(f"{run}/record.json")["tower"] for run in runs}
-  def change(cell):
-    named = set(re.findall(r"`[^`]+`", cell))
-    assert named == changes, f"{cell!r}: the records change {sorted(changes)}"
-  return [
-      change, exact(" ".join(towers)), exact(", ".join(map(str, seeds))),
-      exact((", ".join(map(str, met)) or "none") + f" ({len(met)} of {len(runs)})"),
-      exact(", ".join(f3(overall(r, 0)["mae_m_rows"]) for r in reports)),
-      exact(", ".join(str(sum(overall(r, w)["success"] for w in paper.SUITE_WORLDS))
-                      for r in reports)),
-      exact(", ".join(f"{record(f'{run}/record.json')['wall_s'] / 60:.1f}" for run in runs))]
-
-
-LEVERS = {  # the levers table of reproduction.md: row label -> its seeds' records
-    "`jackal-native`, shipped before": NATIVE, "3-step returns": NSTEP,
-    "LayerNorm in the critics: `jackal-ln`, shipped before": LN,
-    "LayerNorm, batch 128, 4 gradient steps": BATCH128,
-    "LayerNorm, a 5x slower target from 25 % of the budget: `jackal.yaml`, shipped": SEEDS}
-
-
-AGAINST = {  # row label of an "against the targets" table -> (column key, the paper's cell)
+AGAINST = {  # row label of the "against the paper" table -> (column key, the paper's cell)
     "test world 0: success": ("w0", PAPER_SUCCESS),
     "test world 0: MAE / RMSE (mean of the rows)": ("w0 mae rmse", PAPER_MAE_RMSE),
     "test worlds 1, 2, 3 (never trained on): success": ("w123", exact("-")),
-    "test worlds 1, 2, 3 (never trained or tuned on): success": ("w123", exact("-")),
     "test worlds 1, 2, 3: MAE (mean of the rows)": ("w123 mae", exact("-")),
     "noise, lanes 1F and 4F, 3 runs: success at factors 2, 4, 6, 8, 10": (
         "noise", exact(PAPER_NOISE_TEXT)),
     "Husky, lanes 1F and 4F, 3 runs": ("husky", PAPER_HUSKY),
     "validation worlds 100-102 and their noise rows (the choice's 72 runs)": (
         "validation", exact("-")),
-    "held-out test worlds 25, 26, 27 ([below](#held-out-test-worlds-25-26-27))": (
-        "heldout", exact("-")),
+    "held-out test worlds 25, 26, 27": ("heldout", exact("-")),
 }
-SEED_ROWS = {  # row label of a seeds table -> column key
-    "test world 0: success": "w0", "test world 0: MAE / RMSE (mean of rows)": "w0 mae rmse",
-    "test world 0: MAE (mean of rows)": "w0 mae", "test worlds 1, 2, 3: success": "w123",
-    "test worlds 1, 2, 3: MAE": "w123 mae", "noise 1F / 4F at factors 2, 4, 6, 8, 10": "noise",
-    "Husky 1F / 4F": "husky", "best checkpoint: fresh starts F / R": "best",
-    "candidates (env steps)": "candidates", "validation successes /72, MAE": "validation",
-    "selected checkpoint": "selected", "env steps in 52 min": "env steps",
-    "meeting the bar (validation MAE, m)": "bar",
-    "held-out test worlds 16, 17, 18 (first evaluated after every choice)": "heldout",
-    "the same checkpoint with the plain action: worlds 0-3": "plain",
+SEED_ROWS = {  # row label of the seeds table -> column key
+    "test world 0: success": "w0", "test world 0: MAE (mean of rows)": "w0 mae",
+    "test worlds 1, 2, 3: success": "w123", "test worlds 1, 2, 3: MAE": "w123 mae",
+    "noise 1F / 4F at factors 2, 4, 6, 8, 10": "noise", "Husky 1F / 4F": "husky",
+    "selected checkpoint (env steps)": "selected", "wall-clock, whole command (min)": "wall",
 }
 
 
-CHOSEN_ROWS = [  # a seeds table of runs that chose their checkpoint on validation worlds
-    "candidates (env steps)", "validation successes /72, MAE", "selected checkpoint",
-    "test world 0: success", "test world 0: MAE (mean of rows)", "test worlds 1, 2, 3: success",
-    "test worlds 1, 2, 3: MAE", "noise 1F / 4F at factors 2, 4, 6, 8, 10", "Husky 1F / 4F"]
-
-
-def _chosen_column(run: str, folder: str = "suite") -> dict:
-  """A seeds-table column of a run that chose its checkpoint on validation worlds (its
-  chosen policy's suite report in `run/folder`)."""
-  assert all(c["validation"]["episodes"] == 72
-             for c in record(f"{run}/selection.json")["candidates"])
-  return {**_suite_column(suite(f"{run}/{folder}")), "candidates": candidates(run),
-          "validation": validation_scores(run),
-          "selected": exact(thousands(record(f"{run}/selection.json")["selected"]))}
-
-
-def _against(labels: list[str], *columns: dict, target: bool = True) -> dict:
-  return {label: [AGAINST[label][1], *([TARGET] if target else []),
-                  *(c[AGAINST[label][0]] for c in columns)] for label in labels}
-
-
-def _seeds(labels: list[str], *columns: dict) -> dict:
-  return {label: [SEED_TARGETS.get(label, NONE), *(c[SEED_ROWS[label]] for c in columns)]
-          for label in labels}
+def _seed_column(run: str) -> dict:
+  """A column of the seeds table: the chosen policy's suite report, the choice, the time."""
+  return {**_suite_column(suite(run)),
+          "selected": exact(thousands(record(f"{run}selection.json")["selected"])),
+          "wall": exact(f"{record(f'{run}record.json')['wall_s'] / 60:.1f}")}
 
 
 def _timed_end_to_end(run: str) -> dict:
   """The wall-clock and env-steps checks of a run timed end to end alone (its record.json
   the whole command; the choice's and the closing evaluation's times from their records)."""
-  metrics, sel = record(f"{run}/metrics.jsonl"), record(f"{run}/selection.json")
+  metrics, sel = record(f"{run}metrics.jsonl"), record(f"{run}selection.json")
   sps, ups = learning_speeds(metrics)
-  closing = evaluation(f"{run}/closing-eval.md")["overall"]["success"]
+  closing = evaluation(f"{run}closing-eval.md")["overall"]["success"]
   closing_s = float(re.search(r"Rollout wall-clock: ([\d.]+) s",
-                              (RESULTS / f"{run}/closing-eval.md").read_text()).group(1))
-  wall_s = record(f"{run}/record.json")["wall_s"]
+                              (RESULTS / f"{run}closing-eval.md").read_text()).group(1))
+  wall_s = record(f"{run}record.json")["wall_s"]
   choice_s = sum(c["validation"]["wall_s"] for c in sel["candidates"])
-  assert record(f"{run}/config.yaml")["train"]["total_env_steps"] == metrics[-1]["env_steps"]
+  assert record(f"{run}config.yaml")["train"]["total_env_steps"] == metrics[-1]["env_steps"]
   return {
       "wall-clock": contains(
           minutes_seconds(wall_s) + " from the command's start",
@@ -715,17 +571,16 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
   """reproduction.md: (heading, index of the table under it) -> row -> [check or reason per
   column]; "__header__": checks of the header cells after the first."""
   out = {}
+  column = {**_suite_column(suite(SHIPPED), every=True),
+            "validation": chosen_validation(SHIPPED), "heldout": heldout_summary()}
+  out[("Against the paper", 0)] = {
+      label: [paper_cell, TARGET, column[key]] for label, (key, paper_cell) in AGAINST.items()}
 
-  # Training: jackal.yaml seed 0 with the native tower, timed end to end alone
-  sel, chosen = record(f"{SHIPPED}/selection.json"), selected_candidate(SHIPPED)
+  sel, chosen = record(f"{SHIPPED}selection.json"), selected_candidate(SHIPPED)
   timed = _timed_end_to_end(SHIPPED)
   out[("Training", 0)] = {label: [check] for label, check in {
-      "command": COMMAND, "device": MACHINE, "run record": NAMES, "seeds": WHICH,
-      "the policy shipped before": WHICH,
-      "wall-clock": both(timed["wall-clock"], contains(
-          minutes_seconds(record(f"{BEFORE}/record.json")["wall_s"])
-          + " without the slower late target")),
-      "env steps": timed["env steps"],
+      "command": COMMAND, "device": MACHINE, "run record": NAMES,
+      "wall-clock": timed["wall-clock"], "env steps": timed["env steps"],
       "chosen checkpoint": contains(
           f"{thousands(sel['selected'])} env steps, of the candidates "
           + candidate_steps(SHIPPED),
@@ -733,155 +588,24 @@ def reproduction_spec() -> dict[tuple[str, int], dict]:
           "validation runs"),
   }.items()}
 
-  # Against the targets: the shipped policy and the one before it
-  columns = [{**_suite_column(suite(f"{run}/suite"), every=run == SHIPPED),
-              "validation": chosen_validation(run),
-              "heldout": heldout_summary(run, HELDOUT)} for run in (SHIPPED, BEFORE)]
-  out[("Against the targets", 0)] = _against(list(AGAINST)[:3] + list(AGAINST)[4:], *columns)
+  columns = [_seed_column(run) for run in SEEDS]
+  out[("Seeds", 0)] = {label: [SEED_TARGETS.get(label, NONE), *(c[key] for c in columns)]
+                       for label, key in SEED_ROWS.items()}
+  out[("Seeds", 0)]["__header__"] = [None, *(contains(f"seed {s}") for s in range(5))]
 
-  # Seeds of jackal.yaml, of jackal-native, shipped before, and of batch 128
-  bar_rows = [*CHOSEN_ROWS[:2], "meeting the bar (validation MAE, m)", *CHOSEN_ROWS[2:]]
-  for heading, runs in (("Seeds", SEEDS), (LN_SECTION, LN), (NATIVE_SECTION, NATIVE),
-                        (BATCH128_SECTION, BATCH128)):
-    out[(heading, 0)] = _seeds(bar_rows, *({**_chosen_column(run), "bar": meeting_the_bar(run)}
-                                           for run in runs))
-
-  # the levers tried on the shipped recipe
-  out[("Levers tried on the shipped recipe", 0)] = {
-      label: lever_row(runs) for label, runs in LEVERS.items()}
-
-  # jackal-gaps, shipped before: its training, timed end to end on a second run
-  t = _training("jackal-gaps-seed0")
-  e2e = (RESULTS / "jackal-gaps-seed0/end-to-end/README.md").read_text()
-  choice_s = round(sum(c["validation"]["wall_s"] for c in
-                       record("jackal-gaps-seed0/end-to-end/selection.json")["candidates"]))
-  t["wall-clock"] = both(_training("jackal-gaps-seed0/end-to-end")["wall-clock"], contains(
-      re.search(r"the whole command\*\* \| \*\*([^*]+)\*\*", e2e).group(1)
-      + " from the command's start",
-      f"{choice_s // 60} min {choice_s % 60} s for the choice",
-      re.search(r"the closing evaluation [^|]*\| (\d+ s), ", e2e).group(1)
-      + " for the closing evaluation"))
-  sps, ups = learning_speeds(record("jackal-gaps-seed0/metrics.jsonl"))
-  t["env steps"] = both(t["env steps"], contains(spread(sps, ups)))
-  best = record("jackal-gaps-seed0/best.json")
-  evals = {r["env_steps"]: r for r in record("jackal-gaps-seed0/metrics.jsonl")
-           if "eval_mae_m" in r}
-  weaker = min(best["eval_success_forward"], best["eval_success_reverse"])
-  ties = [s for s, r in evals.items() if s != best["env_steps"] and
-          min(r["eval_success_forward"], r["eval_success_reverse"]) == weaker]
-  assert all(evals[s]["eval_mae_m"] > best["eval_mae_m"] for s in ties)
-  t["best checkpoint"] = both(t["best checkpoint"], contains(
-      "the evaluations at " + " and ".join(thousands(s) for s in ties) + " env steps tied it"))
-  firsts = [record(f"jackal-gaps-seed{s}/best.json") for s in (0, 1, 2)]
-  fr = [f"{pct(b['eval_success_forward'])} / {pct(b['eval_success_reverse'])}" for b in firsts]
-  t["seeds"] = contains(f"({fr[0]}, against {fr[1]} and {fr[2]})")
-  out[(GAPS, 0)] = {label: [check] for label, check in t.items()}
-
-  # its seeds
-  columns = [{**_chosen_column(f"jackal-gaps-seed{s}", "suite" if s == 0 else "suite-selected"),
-              "heldout": heldout_summary(f"jackal-gaps-seed{s}", (16, 17, 18))}
-             for s in (0, 1, 2)]
-  out[(GAPS, 1)] = _seeds([
-      "candidates (env steps)", "validation successes /72, MAE", "selected checkpoint",
-      "test world 0: success", "test world 0: MAE / RMSE (mean of rows)",
-      "test worlds 1, 2, 3: success", "test worlds 1, 2, 3: MAE",
-      "noise 1F / 4F at factors 2, 4, 6, 8, 10", "Husky 1F / 4F",
-      "held-out test worlds 16, 17, 18 (first evaluated after every choice)"], *columns)
-
-  # 3-step returns on the shipped recipe: seed 0 timed end to end (record.json), 3 seeds
-  heading = "3-step returns on the shipped recipe, seeds 0, 1, 2"
-  out[(heading, 0)] = {label: [check] for label, check in {
-      "command": COMMAND, "device": MACHINE, "run record": NAMES,
-      **_timed_end_to_end(NSTEP[0])}.items()}
-  out[(heading, 1)] = _seeds(CHOSEN_ROWS, *map(_chosen_column, NSTEP))
-
-  # jackal/recipe.yaml: its training, against the targets (beside the noise drawn from [0.5, 6])
-  heading = "`jackal/recipe.yaml`, the earlier shipped policy, seeds 0, 1, 2"
-  t = _training("jackal")
-  best, metrics = record("jackal/best.json"), record("jackal/metrics.jsonl")
-  assert best["env_steps"] == metrics[-1]["env_steps"]
-  t["best checkpoint"] = both(t["best checkpoint"],
-                              contains(f"chunk {best['chunk']}, ", " (the last)"))
-  lo, hi = record("jackal-noise6/config.yaml")["env"]["train_noise_factor"]
-  t.update({"seeds": WHICH, "the policy shipped before it": contains(f"[{lo:g}, {hi:g}]")})
-  out[(heading, 0)] = {label: [check] for label, check in t.items()}
-  out[(heading, 1)] = _against(
-      list(AGAINST)[:2] + list(AGAINST)[3:7],
-      _suite_column(suite("jackal/suite"), every=True),
-      _suite_column(suite("jackal-noise6/suite")), target=False)
-  out[(heading, 1)]["__header__"] = [None, None, contains(f"[{lo:g}, {hi:g}]")]
-  runs = ("jackal", "jackal-seed1", "jackal-seed2")
-  assert {_max_minutes(r) for r in runs} == {"52"}  # the row label's "in 52 min"
-  columns = [{**_suite_column(suite(f"{run}/suite")), "best": best_fresh_starts(run),
-              "env steps": exact(thousands(record(f"{run}/metrics.jsonl")[-1]["env_steps"]))}
-             for run in runs]
-  out[(heading, 2)] = _seeds([
-      "env steps in 52 min", "best checkpoint: fresh starts F / R", "test world 0: success",
-      "test world 0: MAE (mean of rows)", "test worlds 1, 2, 3: success",
-      "test worlds 1, 2, 3: MAE", "noise 1F / 4F at factors 2, 4, 6, 8, 10", "Husky 1F / 4F"],
-      *columns)
-
-  # the log-uniform draw, seeds 0 and 1; the mirror-averaged action, seeds 0, 1, 2
-  labels = ["best checkpoint: fresh starts F / R", "test world 0: success",
-            "test world 0: MAE / RMSE (mean of rows)", "test worlds 1, 2, 3: success",
-            "test worlds 1, 2, 3: MAE", "noise 1F / 4F at factors 2, 4, 6, 8, 10",
-            "Husky 1F / 4F"]
-  out[("The log-uniform noise draw, seeds 0 and 1", 0)] = _seeds(labels, *(
-      {**_suite_column(suite(f"jackal-lognoise-seed{s}/suite")),
-       "best": best_fresh_starts(f"jackal-lognoise-seed{s}")} for s in (0, 1)))
-  plain = [exact(", ".join(str(overall(suite(f"jackal-lognoise-seed{s}/suite"), w)["success"])
-                           for w in paper.SUITE_WORLDS)) for s in (0, 1)]
-  out[("The mirror-averaged action, `jackal-sym`, seeds 0, 1, 2", 0)] = _seeds(
-      labels + ["the same checkpoint with the plain action: worlds 0-3"],
-      {**_suite_column(suite("jackal-sym-seed0/suite")), "plain": plain[0],
-       "best": best_fresh_starts("jackal-sym-seed0")},
-      {**_suite_column(suite("jackal-lognoise-seed1/suite-mirror-average")), "plain": plain[1],
-       "best": best_fresh_starts("jackal-lognoise-seed1", plain=True)},
-      {**_suite_column(suite("jackal-sym-seed2/suite")), "plain": exact("not run"),
-       "best": best_fresh_starts("jackal-sym-seed2")})
-
-  # held-out worlds: heldout/<policy>-world<N>.md
-  for heading, worlds, policies in (
-      ("Held-out test worlds 4, 5, 6", (4, 5, 6), {
-          "`jackal/recipe.yaml` seed 0 (shipped then; uniform draw)": "jackal-seed0",
-          "log-uniform draw, seed 1": "lognoise-seed1",
-          "log-uniform draw, seed 0": "lognoise-seed0"}),
-      ("Held-out test worlds 7, 8, 9", (7, 8, 9), {
-          "`jackal/recipe.yaml` seed 0 (shipped then)": "jackal-seed0",
-          "`jackal-sym` seed 0": "jackal-sym-seed0",
-          "`jackal-sym` seed 1 (the log-uniform checkpoint, averaged action)":
-              "jackal-sym-seed1",
-          "`jackal-sym` seed 2": "jackal-sym-seed2"}),
-      ("Held-out test worlds 10, 11, 12", (10, 11, 12), {
-          "`jackal/recipe.yaml` seed 0 (shipped then)": "jackal-seed0",
-          "`jackal.yaml` seed 1": "jackal-gaps-seed1",
-          "`jackal.yaml` seed 2": "jackal-gaps-seed2"}),
-      ("Held-out test worlds 13, 14, 15", (13, 14, 15), {
-          "`jackal-gaps` seed 0 (shipped then)": "jackal-gaps-seed0",
-          "`jackal/recipe.yaml` seed 0 (shipped before)": "jackal-seed0"}),
-      ("Held-out test worlds 19, 20, 21", (19, 20, 21), {
-          "`jackal-native` seed 0 (shipped then)": NATIVE[0],
-          "`jackal-gaps` seed 0 (shipped before it)": "jackal-gaps-seed0"}),
-      ("Held-out test worlds 22, 23, 24", (22, 23, 24), {
-          "`jackal-ln` seed 0 (shipped then)": BEFORE,
-          "`jackal-native` seed 0 (shipped before it)": NATIVE[0]}),
-      ("Held-out test worlds 25, 26, 27", HELDOUT, {
-          "`models/jackal.npz` (`jackal.yaml` seed 0)": SHIPPED,
-          "`jackal-ln` seed 0 (shipped before)": BEFORE})):
-    out[(heading, 0)] = {
-        label: [*(heldout_cell(name, w) for w in worlds), heldout_note(name, worlds)]
-        for label, name in policies.items()}
-    out[(heading, 0)]["__header__"] = [contains(f"world {w}") for w in worlds] + [None]
+  out[("Held-out test worlds 25, 26, 27", 0)] = {
+      "`models/jackal.npz`": [*(heldout_cell(w) for w in HELDOUT), heldout_note()],
+      "__header__": [contains(f"world {w}") for w in HELDOUT] + [None]}
   return out
 
 
 # --- the tests --------------------------------------------------------------------------------
 
-README_TABLE = next(t for t in tables(ROOT / "README.md") if t.heading == "Results")
+README_TABLE = next(t for t in tables(README) if t.heading == "Results")
 # "The report" and its sub-sections: the suite's report, checked as a whole below
 REPORT_HEADINGS = ("The report", "Noise (world 0, lanes 1F and 4F, 3 runs each)",
                    "Robots (world 0, 3 runs each; the policy was trained on the Jackal)",
-                   "Test world 0 (the paper's)", "Test world 1", "Test world 2", "Test world 3")
+                   "Test world 0", "Test world 1", "Test world 2", "Test world 3")
 
 
 def _reproduction_tables() -> dict[tuple[str, int], Table]:
@@ -954,20 +678,46 @@ def test_every_figure_has_a_record_or_a_reason():
 
 def test_the_report_section_is_the_suite_report():
   """reproduction.md's "The report" is the shipped policy's suite report as the suite
-  writes it from the record (headings one level down, figure paths from the page)."""
+  writes it from the record (headings one level down, figure paths from the page), less
+  the report's opening paragraph and the words "(the paper's)" after test world 0: the
+  page says what test world 0 is."""
   from mjxvine.evaluation.suite import report_markdown
-  folder = f"{SHIPPED}/suite"
-  lines = report_markdown(suite(folder)).splitlines()
+  lines = report_markdown(suite(SHIPPED)).splitlines()
   assert lines[0].startswith("# The paper's evaluation: ") and not lines[1]
   expected = "\n".join("#" + l if l.startswith("## ") else l for l in lines[2:])
-  expected = expected.replace("](world", f"]({folder}/world").strip()
+  expected = re.sub(r"\]\(world(\d+)/trajectories\.png\)",
+                    rf"]({SHIPPED}suite-world\1-trajectories.png)", expected).strip()
+  expected = expected.split("\n\n", 1)[1].replace("Test world 0 (the paper's)", "Test world 0")
   page = REPRODUCTION.read_text()
   section = page[page.index("\n## The report\n"):].split("\n", 3)[3]
   end = re.search(r"^## ", section, re.M)
   section = (section[:end.start()] if end else section).strip()
-  assert section == expected, (
-      f"reproduction.md's report differs from docs/results/{folder}/report.json as "
+  section = section.split("\n\n", 1)[1]  # the page's own opening paragraph
+  assert section == expected.strip(), (
+      f"reproduction.md's report differs from docs/results/{SHIPPED}suite.json as "
       "mjxvine.evaluation.suite.report_markdown writes it")
+
+
+def test_the_seeds_that_meet_every_target():
+  """reproduction.md: "Four seeds of five meet every target", seed 3 the one that misses."""
+  met = [s for s, run in enumerate(SEEDS) if meets_targets(suite(run))]
+  assert met == [0, 1, 2, 4]
+  assert "Four seeds of five meet every target." in " ".join(REPRODUCTION.read_text().split())
+
+
+def test_prose_figures_are_the_records():
+  """The README's and reproduction.md's figures in prose: the shipped run's wall-clock,
+  its chosen checkpoint and budget, and the range of env steps its seeds chose."""
+  wall = minutes_seconds(record(f"{SHIPPED}record.json")["wall_s"])
+  steps = thousands(record(f"{SHIPPED}metrics.jsonl")[-1]["env_steps"])
+  chosen = thousands(record(f"{SHIPPED}selection.json")["selected"])
+  picks = [record(f"{run}selection.json")["selected"] for run in SEEDS]
+  readme = " ".join(README.read_text().split())
+  page = " ".join(REPRODUCTION.read_text().split())
+  assert f"trained in {wall} end to end" in readme
+  assert f"{chosen} of {steps} env steps" in readme
+  assert f"{min(picks):,}-{max(picks):,} of its {steps} env steps" in page
+  assert meets_bar(selected_candidate(SHIPPED)["validation"])
 
 
 def test_a_wrong_figure_fails():
@@ -975,10 +725,14 @@ def test_a_wrong_figure_fails():
   docs' forms (a broken reader would pass wrong figures)."""
   table = README_TABLE
   row = next(r for r in table.rows if r[0].startswith("`models/jackal.npz`"))
-  col = table.header.index("MAE / RMSE m")
   bad = [list(r) for r in table.rows]
-  bad[table.rows.index(row)][col] = "9.999 / 9.999"
-  assert _failures(Table(table.where, table.heading, table.header, bad), _specs()[("README", 0)])
+  for col, wrong in (("MAE / RMSE m", "9.999 / 9.999"),
+                     ("seeds 0-4 of its recipe", "world 0 250/250 at MAE 0.019-0.034; "
+                                                 "worlds 1-3 749/750")):
+    bad[table.rows.index(row)][table.header.index(col)] = wrong
+    assert _failures(Table(table.where, table.heading, table.header, bad),
+                     _specs()[("README", 0)])
+    bad = [list(r) for r in table.rows]
   assert claims("world 1 5F, 5R; world 3 3F, 3R, 5R 0/5", (1, 2, 3)) == {
       (1, "5F", 0, 5), (1, "5R", 0, 5), (3, "3F", 0, 5), (3, "3R", 0, 5), (3, "5R", 0, 5)}
   assert claims("3R and 5R 0/5", (1, 2)) == {

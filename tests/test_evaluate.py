@@ -41,7 +41,7 @@ def test_mae_rmse_of_synthetic_trajectories():
 @pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
 def test_oracle_drives_every_test_lane(tmp_path):
   out = tmp_path / "oracle"
-  overrides = ["world.test_length_m=8", "world.test_seed=3", "camera.width=16",
+  overrides = ["world.test_length_m=8", "camera.width=16",
                "camera.height=12", "eval.max_steps=200"]
   cfg_file = tmp_path / "c.yaml"
   cfg_file.write_text("{}\n")  # the defaults (an empty file is refused)
@@ -158,8 +158,9 @@ def test_trajectories_figure(tmp_path):
 
 
 def test_bad_runs_noise_and_policy_file(tmp_path, capsys):
-  for flags, message in ((["--runs", "0"], "--runs 0: need at least 1 run"),
-                         (["--noise", "-1"], "--noise -1.0: the noise factor must be >= 0")):
+  for flags, message in ((["--runs", "0"], "--runs: eval.runs = 0: must be in [1, 1000]"),
+                         (["--noise", "-1"],
+                          "--noise: eval.noise_factor = -1.0: must be in [0.0, 100.0]")):
     with pytest.raises(SystemExit) as e:
       evaluate_main(["--policy", "oracle", "--out", str(tmp_path), *flags])
     assert e.value.code == 2 and message in capsys.readouterr().err
@@ -169,8 +170,9 @@ def test_bad_runs_noise_and_policy_file(tmp_path, capsys):
   assert "corrupt.npz: not a valid policy file" in err and "allow_pickle" not in err
   assert len(err.splitlines()) == 1
   with pytest.raises(ValueError, match="runs=0"):
-    rollout.evaluate(load_config(), "oracle", generate_world("test", 0, load_config().world),
-                     runs=0, noise_factor=1.0)
+    rollout.evaluate(load_config(), rollout.PolicySource("oracle"),
+                     generate_world("test", 0, load_config().world),
+                     rollout.Protocol(runs=0, noise_factor=1.0))
 
 
 @pytest.mark.slow  # over 20 s on a 2-core CPU: the fast suite stays within 12 minutes
@@ -201,7 +203,7 @@ def test_paper_suite_oracle(tmp_path):
 # A run trained with another image size (34x36) and smaller networks than the defaults: its
 # config.yaml and a best checkpoint laid out as `checkpoint.Checkpoints` writes them.
 RUN_SETTINGS = ["camera.height=34", "camera.width=36", "sac.hidden=16", "sac.conv_features=4",
-                "world.test_length_m=8", "world.test_seed=3", "eval.max_steps=12",
+                "world.test_length_m=8", "eval.max_steps=12",
                 "eval.runs=1"]
 
 
@@ -257,7 +259,7 @@ def test_a_run_is_evaluated_filmed_and_exported_with_its_own_config(small_run, m
   assert sorted(p.name for p in Path("ev/videos").iterdir()) == ["2R.gif", "2R.mp4"]
   assert "(config: run/config.yaml)" in capsys.readouterr().err
 
-  assert export.main(["--checkpoint", run, "--out", "p.npz"]) == 0
+  assert export.main(["--policy", run, "--out", "p.npz"]) == 0
   _, meta = read_policy_file("p.npz")
   assert meta["image_size"] == [34, 36] and meta["max_depth_m"] == 5.0
   assert evaluate_main(["--policy", "p.npz", "--out", "ev2", *film]) == 0
@@ -274,7 +276,7 @@ def test_an_override_of_what_the_networks_need_is_one_line(small_run, monkeypatc
   err = capsys.readouterr().err
   assert err == ("config error: camera.width = 40: the policy was trained with 36 "
                  "(run/config.yaml); its networks fit only that (drop the override)\n")
-  assert export.main(["--checkpoint", run, "--out", "x.npz", "--set", "sac.hidden=64"]) == 2
+  assert export.main(["--policy", run, "--out", "x.npz", "--set", "sac.hidden=64"]) == 2
   assert "sac.hidden = 64: the policy was trained with 16" in capsys.readouterr().err
   assert not Path("x").exists() and not Path("x.npz").exists()
   # what does not touch the networks may change: the config says so

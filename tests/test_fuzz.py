@@ -66,7 +66,7 @@ def test_damaged_policy_files_load_or_raise_policy_errors(tmp_path, capsys):
     except PolicyError:
       pass
     # the converter: exit 0 with a whole graph, or 2 with one line and nothing written
-    code = export_main(["--checkpoint", str(path), "--format", "onnx", "--out", str(out)])
+    code = export_main(["--policy", str(path), "--format", "onnx", "--out", str(out)])
     err = capsys.readouterr().err
     assert code in (0, 2), err
     if code == 2:
@@ -125,7 +125,7 @@ def checkpoint_run(tmp_path_factory):
 def test_damaged_checkpoints_export_or_refuse_in_one_line(checkpoint_run, tmp_path, capsys):
   import shutil
   out = tmp_path / "policy.npz"
-  assert export_main(["--checkpoint", str(checkpoint_run), "--out", str(out)]) == 0
+  assert export_main(["--policy", str(checkpoint_run), "--out", str(out)]) == 0
   NumpyPolicy.load(out)
   out.write_bytes(b"the previous file")
   rng = np.random.default_rng(2)
@@ -137,7 +137,7 @@ def test_damaged_checkpoints_export_or_refuse_in_one_line(checkpoint_run, tmp_pa
       shutil.rmtree(run, ignore_errors=True)
       shutil.copytree(checkpoint_run, run)
       (run / rel).write_bytes(data)
-      code = export_main(["--checkpoint", str(run), "--out", str(out)])
+      code = export_main(["--policy", str(run), "--out", str(out)])
       err = capsys.readouterr().err
       assert code in (0, 2), err
       if code == 2:  # refused in one line; the previous file is intact

@@ -37,7 +37,7 @@ def test_sac_beats_random_and_straight_in_both_directions(tmp_path):
   key = jax.random.PRNGKey(11)
   success = {}
   for name, policy in (("trained", starts.ACTOR), *starts.BASELINES.items()):
-    out = run(programs.starts_params(best.learner.policy_params, policy), key)
+    out = run(programs.starts_params(best.learner.averaged_actor_params, policy), key)
     success[name] = (float(out["success_forward"]), float(out["success_reverse"]))
   for d, direction in enumerate(("forward", "reverse")):
     trained = success["trained"][d]

@@ -11,7 +11,7 @@ from mjxvine.config import load_config
 from mjxvine.episodes import OUTCOMES
 from mjxvine.evaluation import rollout
 from mjxvine.worlds import generate_world, make_world
-from mjxvine.worlds.blocks import vineyard_from_rows
+from mjxvine.worlds.blocks import BlockFrame, vineyard_from_rows
 
 TINY = ["camera.width=16", "camera.height=12"]
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "vineyard-block.geojson"
@@ -26,7 +26,7 @@ def _block(cfg, lengths=(40.0, 46.0, 43.0), inter_row=2.4, bend=0.6):
     x = np.arange(start, start + length, 1.0)
     y = j * inter_row + bend * np.sin(np.pi * x / 46.0) ** 2
     rows.append(np.stack([x, y], -1) @ rot.T)
-  return vineyard_from_rows(rows, cfg.world, robot_width_m=0.43, source="block")
+  return vineyard_from_rows(rows, cfg.world, robot_width_m=0.43, frame=BlockFrame("block"))
 
 
 def test_the_time_limit_follows_the_row(cfg):
@@ -53,8 +53,8 @@ def test_a_block_has_lanes_of_its_own_lengths_and_widths(cfg):
 def test_the_oracle_finishes_a_100_m_row_and_the_example_block(cfg):
   long_cfg = load_config(None, [*TINY, "world.test_length_m=100"])
   long = generate_world("test", 0, long_cfg.world)
-  doc = rollout.evaluate(long_cfg, "oracle", long, runs=1, noise_factor=1.0, lanes=[1],
-                         directions=("F",))
+  doc = rollout.evaluate(long_cfg, rollout.PolicySource("oracle"), long,
+                         rollout.Protocol(runs=1, noise_factor=1.0, lanes=[1], directions=("F",)))
   (row,) = doc["rows"]
   assert row["outcomes"] == ["success"] and row["lane_length_m"] > 99.9
   assert row["time_to_eor_s"] > 700 * long_cfg.env.control_dt  # past the paper's limit
@@ -63,7 +63,8 @@ def test_the_oracle_finishes_a_100_m_row_and_the_example_block(cfg):
   # the example block read from its GeoJSON: lanes of 87-90.5 m, each to its own end
   block_cfg = load_config(None, TINY)
   block = make_world(str(EXAMPLE), block_cfg.world, robot_width_m=0.43)
-  doc = rollout.evaluate(block_cfg, "oracle", block, runs=1, noise_factor=1.0, lanes=[1, 8])
+  doc = rollout.evaluate(block_cfg, rollout.PolicySource("oracle"), block,
+                         rollout.Protocol(runs=1, noise_factor=1.0, lanes=[1, 8]))
   assert [r["outcomes"] for r in doc["rows"]] == [["success"]] * 4
   for r in doc["rows"]:
     lane = block.lanes[r["lane"] - 1]
@@ -116,11 +117,11 @@ def test_vineyard_files_join_the_pool_of_train_worlds(tmp_path):
 def test_the_oracle_drives_every_lane_of_a_mixed_pool(tmp_path):
   import jax
   from mjxvine.env import VineyardEnv, pure_pursuit
-  cfg = _pool_with_block(tmp_path, ["env.start_along=[0.0,0.9]"])
+  cfg = _pool_with_block(tmp_path, [])
   env = VineyardEnv(cfg)
   drive = pure_pursuit(env)
   keys = jax.random.split(jax.random.PRNGKey(0), 64)
-  state = jax.jit(jax.vmap(env.reset))(keys)
+  state = jax.jit(jax.vmap(lambda k: env.reset(k, None, (0.0, 0.9))))(keys)
   assert set(np.asarray(state.info["pose"]["world"]).tolist()) == {0, 1, 2}
 
   @jax.jit
@@ -167,7 +168,8 @@ def test_lanes_of_one_length_but_staggered_starts(cfg):
   path of the lane table takes the lanes' own extent, not the block's length."""
   from mjxvine.env import LaneTable
   rows = [np.stack([np.arange(30.0) + 2.0 * j, np.full(30, 2.4 * j)], -1) for j in range(3)]
-  block = vineyard_from_rows(rows, cfg.world, robot_width_m=0.43, heading_rad=0.0)
+  block = vineyard_from_rows(rows, cfg.world, robot_width_m=0.43,
+                             frame=BlockFrame(heading_rad=0.0))
   lanes = LaneTable([block])
   assert lanes.uniform and block.length_m == pytest.approx(29.0)  # lane 2 ends at x = 29
   assert lanes.static_length_m == pytest.approx(27.0)  # lanes: x 0..27 and 2..29

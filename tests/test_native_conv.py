@@ -74,9 +74,9 @@ def test_max_pool_ties_go_to_the_first_maximum():
 
 @needs_native
 def test_the_trainer_takes_the_native_tower_on_the_cpu():
-  assert sac.learner_conv_impl() == "native" == sac.learner_conv_impl("native")
-  assert sac.learner_conv_impl("shift") == "shift"
-  assert sac.describe_conv_impl() == f"native ({native.instruction_set()})"
+  assert nw.learner_conv_impl() == "native" == nw.learner_conv_impl("native")
+  assert nw.learner_conv_impl("shift") == "shift"
+  assert nw.describe_conv_impl() == f"native ({native.instruction_set()})"
 
 
 @needs_native
@@ -146,7 +146,7 @@ def test_unavailable_is_reported():
   that reason rather than running something else."""
   code = ("from mjxvine import native, networks as nw, sac; import jax.numpy as jnp\n"
           "print(native.available(), native.unavailable_reason())\n"
-          "print('auto:', sac.learner_conv_impl(), '|', sac.describe_conv_impl())\n"
+          "print('auto:', nw.learner_conv_impl(), '|', nw.describe_conv_impl())\n"
           "try:\n"
           "  nw.ConvTower(8, conv_impl='native').init(__import__('jax').random.PRNGKey(0),"
           " jnp.zeros((1, 41, 41, 1)))\n"

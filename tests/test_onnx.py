@@ -105,11 +105,11 @@ def test_onnx_from_arrays_with_preprocess(small_policy, tmp_path):
 def test_export_cli_npz_to_onnx(small_policy, tmp_path, capsys):
   path = small_policy[0]
   out = tmp_path / "cli.onnx"
-  export.main(["--checkpoint", str(path), "--format", "onnx", "--out", str(out)])
+  export.main(["--policy", str(path), "--format", "onnx", "--out", str(out)])
   depth, state = _inputs(3, 5)
   (got,) = _session(out).run(["action"], {"depth": depth, "state": state})
   np.testing.assert_allclose(got, deploy.NumpyPolicy.load(path).action(depth, state), atol=1e-5)
-  assert export.main(["--checkpoint", str(path), "--out", str(tmp_path / "again.npz")]) == 2
+  assert export.main(["--policy", str(path), "--out", str(tmp_path / "again.npz")]) == 2
   assert "only to --format onnx" in capsys.readouterr().err
 
 
@@ -127,7 +127,7 @@ def test_latency_onnx(small_policy, tmp_path, capsys):
   onnx_path = onnx_lib.export_onnx(small_policy[0], tmp_path / "policy.onnx")
   result = latency.onnx_latency(onnx_path, threads=1, calls=5)
   assert result["calls"] == 5 and 0.0 < result["min_ms"] <= result["median_ms"]
-  latency.main([str(onnx_path), "--calls", "3", "--threads", "2", "--no-spinning"])
+  latency.main(["--policy", str(onnx_path), "--calls", "3", "--threads", "2", "--no-spinning"])
   assert json.loads(capsys.readouterr().out)["calls"] == 3
 
 
@@ -140,7 +140,7 @@ def test_export_cli_orbax_to_onnx(small_policy, tmp_path):
   ckpt = ocp.StandardCheckpointer()
   ckpt.save(run / "checkpoints" / "100" / "state", {"learner": {"actor_params": params}})
   ckpt.wait_until_finished()
-  export.main(["--checkpoint", str(run), "--format", "onnx",
+  export.main(["--policy", str(run), "--format", "onnx",
                "--set", f"camera.height={H}", "--set", f"camera.width={W}"])
   depth, state = _inputs(2, 6)
   (got,) = _session(run / "policy.onnx").run(["action"], {"depth": depth, "state": state})

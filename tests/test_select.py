@@ -20,10 +20,9 @@ from mjxvine.deploy import read_policy_file
 from mjxvine.evaluation import choice
 from mjxvine.worlds import generate_world
 
-# one validation world, one run per lane-direction, short episodes; the trainer's program
-# is test_train.py's (these keys do not shape it)
-SELECT = ("train.select_worlds=1", "train.select_runs=1", "train.select_candidates=2",
-          "eval.max_steps=12")
+# one validation world, short episodes; the trainer's program is test_train.py's (these
+# keys do not shape it)
+SELECT = ("train.select_worlds=1", "train.select_candidates=2", "eval.max_steps=12")
 
 
 @pytest.fixture(scope="module")
@@ -46,13 +45,14 @@ def test_the_trainer_chooses_on_the_validation_world(selected_run):
   lanes = len(choice.validation_worlds(load_config(run / "config.yaml"))[0].lanes)
   for c in record["candidates"]:
     v = c["validation"]
-    # every lane-direction once, and rows 1F and 4F three times at noise 8 and at 10
-    assert v["episodes"] == 2 * lanes + 2 * 2 * 3
-    assert list(v["worlds"]) == ["100"] and v["worlds"]["100"]["episodes"] == 2 * lanes
+    # every lane-direction RUNS times, and rows 1F and 4F three times at noise 8 and at 10
+    assert v["episodes"] == 2 * lanes * choice.RUNS + 2 * 2 * 3
+    assert list(v["worlds"]) == ["100"]
+    assert v["worlds"]["100"]["episodes"] == 2 * lanes * choice.RUNS
     assert v["success"] == v["worlds"]["100"]["success"] + sum(
         sum(n.values()) for n in v["noise"].values())
     assert c["trainer"]["eval_mae_m"] == pytest.approx(evals[c["env_steps"]]["eval_mae_m"])
-  bar = load_config(run / "config.yaml").train.select_success_bar
+  bar = choice.SUCCESS_BAR
   best = max(record["candidates"], key=lambda c: choice.rank(c["validation"], bar))
   assert record["selected"] == best["env_steps"] == row["selected_env_steps"]
   kept = run / "eval_policies" / f"env{record['selected']}.npz"
@@ -132,7 +132,7 @@ def test_a_selection_resumes_from_its_record(selected_run, tmp_path, monkeypatch
   (copy / "selection.json").write_text(json.dumps(record))
   # every candidate is in the record: nothing is driven again
   monkeypatch.setattr(choice, "score_policy", lambda *a, **k: pytest.fail("scored again"))
-  assert choose.main([str(copy)]) == 0
+  assert choose.main(["--policy", str(copy)]) == 0
   again = json.loads((copy / "selection.json").read_text())
   assert again["selected"] == json.loads((run / "selection.json").read_text())["selected"]
   assert (copy / "selected.npz").read_bytes() == (run / "selected.npz").read_bytes()
@@ -141,26 +141,26 @@ def test_a_selection_resumes_from_its_record(selected_run, tmp_path, monkeypatch
 
 def test_bad_requests_fail_in_one_line(selected_run, tmp_path, capsys):
   run, _ = selected_run
-  assert choose.main([str(tmp_path)]) == 2
+  assert choose.main(["--policy", str(tmp_path)]) == 2
   assert "no config.yaml" in capsys.readouterr().err
-  assert select.main([str(tmp_path)]) == 2  # the old name still answers
+  assert select.main(["--policy", str(tmp_path)]) == 2  # the old name still answers
   assert "no config.yaml" in capsys.readouterr().err
-  assert choose.main([str(run), "--set", "train.select_worlds=0"]) == 2
+  assert choose.main(["--policy", str(run), "--set", "train.select_worlds=0"]) == 2
   assert "train.select_worlds = 0" in capsys.readouterr().err
   empty = tmp_path / "empty"
   empty.mkdir()
   shutil.copy(run / "config.yaml", empty / "config.yaml")
-  assert choose.main([str(empty)]) == 2
+  assert choose.main(["--policy", str(empty)]) == 2
   assert "no evaluated policy" in capsys.readouterr().err
   with pytest.raises(ConfigError, match="train.select_world_seed"):
     load_config("experiments/smoke.yaml", ["train.select_world_seed=3"])
-  assert choose.main([str(run), "--member", "1"]) == 2
+  assert choose.main(["--policy", str(run), "--member", "1"]) == 2
   assert "--member 1: the run trained 1 member(s), 0 to 0" in capsys.readouterr().err
 
 
 @pytest.mark.slow  # a vmapped 2-member trainer compiles: over 20 s on a 2-core CPU
 def test_each_member_of_a_seeds_run_chooses_its_own(tmp_path, capsys):
-  """`--seeds 2` with train.select_worlds: each member keeps its own evaluated policies,
+  """`--num-seeds 2` with train.select_worlds: each member keeps its own evaluated policies,
   is scored on the validation world from its own fresh-start evaluations, and gets its own
   choice, which `--member K` of a run dir then means."""
   run = tmp_path / "seeds"
@@ -188,5 +188,5 @@ def test_each_member_of_a_seeds_run_chooses_its_own(tmp_path, capsys):
   assert not (run / "selection.json").exists() and restore_actor_params(run)[1] == (
       run / "selected_members" / "member0.npz")
   # the command line chooses again for one member, from its record (nothing driven again)
-  assert choose.main([str(run), "--member", "1"]) == 0
+  assert choose.main(["--policy", str(run), "--member", "1"]) == 0
   assert "member 1: selected the policy of" in capsys.readouterr().out

@@ -19,7 +19,7 @@ from mjxvine.config import config_hash, load_config, to_dict
 from mjxvine.deploy import NumpyPolicy
 from mjxvine.episodes import OUTCOMES, SUCCESS
 from mjxvine.evaluation.metrics import summarize
-from mjxvine.evaluation.rollout import rollout_cases
+from mjxvine.evaluation.rollout import PolicySource, rollout_cases
 from mjxvine.rundir.settings import policy_config
 from mjxvine.worlds import load_test_world
 
@@ -59,12 +59,12 @@ def test_metadata_is_the_config_that_trained_it():
   what it records, and its run's record ends at the config's env-step budget."""
   meta = NumpyPolicy.load(MODEL).meta
   cfg = load_config(str(CONFIG))
-  assert cfg.sac.conv_impl == "auto" and cfg.train.max_minutes == 0
+  assert cfg.train.conv_impl == "auto" and cfg.train.max_minutes == 0
   assert meta["config"]["sac"]["conv_impl"] == "native"
   assert meta["conv_tower"].startswith("native (")
-  file_cfg, _ = policy_config(MODEL, overrides=["sac.conv_impl=auto"])
+  file_cfg, _ = policy_config(MODEL, overrides=["train.conv_impl=auto"])
   assert to_dict(file_cfg) == to_dict(cfg)
-  record = ROOT / "docs" / "results" / "jackal-taulate-seed0" / "metrics.jsonl"
+  record = ROOT / "docs" / "results" / "shipped-agent" / "metrics.jsonl"  # its run's record
   assert json.loads(record.read_text().splitlines()[-1])["env_steps"] == cfg.train.total_env_steps
   assert meta["env_steps"] == json.loads(
       (record.parent / "selection.json").read_text())["selected"]
@@ -108,7 +108,8 @@ def test_drives_a_straight_and_a_curved_lane_to_the_end():
   world = load_test_world(cfg.world)
   assert world.lanes[0].shape == "straight" and world.lanes[3].shape == "curved"
   noise = cfg.eval.noise_factor
-  raw, _ = rollout_cases(cfg, str(MODEL), [world], [(0, 1, "F", noise), (0, 4, "R", noise)])
+  raw, _ = rollout_cases(cfg, PolicySource(str(MODEL)), [world],
+                         [(0, 1, "F", noise), (0, 4, "R", noise)])
   assert [OUTCOMES[int(o)] for o in raw["outcome"]] == [OUTCOMES[SUCCESS]] * 2
   doc = summarize(cfg, world, [(0, 1, "F", noise), (0, 4, "R", noise)], [0, 1], raw)
   assert doc["overall"]["mae_m_rows"] < 0.15  # near the centre line, not along a row

@@ -17,7 +17,7 @@ from mjxvine import rundir
 from mjxvine.training import iteration as trainer
 from mjxvine.rundir.checkpoints import Checkpoints
 from mjxvine.config import load_config
-from mjxvine.sac import describe_conv_impl, learner_conv_impl, resolve_conv_impl
+from mjxvine.networks import describe_conv_impl, learner_conv_impl, resolve_conv_impl
 
 OVERRIDES = ["camera.width=36", "camera.height=36", "env.num_envs=2", "env.max_steps=30",
              "sac.batch_size=16", "sac.buffer_size=512", "sac.warmup_steps=40",
@@ -188,7 +188,7 @@ def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   from mjxvine.worlds import generate_world
   run, _ = first_run
   npz = tmp_path / "policy.npz"
-  export.main(["--checkpoint", str(run), "--out", str(npz)])
+  export.main(["--policy", str(run), "--out", str(npz)])
   cfg = load_config(run / "config.yaml", ["world.test_length_m=8", "eval.max_steps=15"])
   world = generate_world("test", 0, cfg.world)
   env = VineyardEnv(cfg, [world])
@@ -201,8 +201,8 @@ def test_exported_policy_evaluates_like_the_checkpoint(first_run, tmp_path):
   kept = policies.load_actor_params(run / "eval_policies" / f"env{best_steps}.npz", env)
   for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(from_npz)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-  doc = rollout.evaluate(cfg, str(npz), world, runs=1, noise_factor=1.0, lanes=(1,),
-                          directions=("F",))
+  doc = rollout.evaluate(cfg, rollout.PolicySource(str(npz)), world,
+                         rollout.Protocol(runs=1, noise_factor=1.0, lanes=(1,), directions=("F",)))
   assert doc["overall"]["runs"] == 1 and doc["rows"][0]["outcomes"][0] in (
       "timeout", "collision", "left_lane", "reversed", "success")
   other = VineyardEnv(load_config(run / "config.yaml", ["camera.width=40"]), [world])
@@ -296,7 +296,7 @@ def test_the_same_command_gives_the_same_policy_file(first_run, tmp_path):
   files = []
   for run in (first_run[0], again):
     out = tmp_path / f"{run.name}.npz"
-    assert export_main(["--checkpoint", str(run), "--out", str(out)]) == 0
+    assert export_main(["--policy", str(run), "--out", str(out)]) == 0
     files.append(out.read_bytes())
   assert files[0] == files[1]
   assert (again / "eval_policies" / "env80.npz").read_bytes() == (
@@ -306,7 +306,7 @@ def test_the_same_command_gives_the_same_policy_file(first_run, tmp_path):
 
 def test_a_wall_clock_stop_says_so_in_the_last_line_and_the_record(tmp_path, capsys):
   run = tmp_path / "timed"
-  assert train_mod.main(["--config", "experiments/smoke.yaml", "--run-dir", str(run),
+  assert train_mod.main(["--config", "experiments/smoke.yaml", "--out", str(run),
                          "--no-eval", *sum((["--set", o] for o in OVERRIDES), []),
                          "--set", "train.total_env_steps=80",
                          "--set", "train.max_minutes=0.0001"]) == 0

@@ -59,7 +59,8 @@ def test_drive_is_the_evaluators_stepping():
   env = ToyEnv()
   key = jax.random.PRNGKey(7)
   steps = list(rollout.drive(env, _toy_policy, 3, "R", key))
-  xy, act, alive, outcome, n, _ = rollout.rollout(env, _toy_policy, [2], [-1.0], key, 40)
+  starts = rollout.EnvStarts(lanes=[2], directions=[-1.0])
+  xy, act, alive, outcome, n, _ = rollout.rollout(env, _toy_policy, starts, key, 40)
   assert len(steps) == int(n[0]) + 1 < 40  # the start, every step, and no more
   assert steps[0][0][1] == 4.0 and np.all(steps[0][1] == 0)  # lane 3 (0-based 2)
   np.testing.assert_allclose(np.stack([q[:2] for q, _, _ in steps[1:]]), xy[:n[0], 0])
@@ -79,7 +80,8 @@ def test_drive_steps_as_the_evaluator_does():
   policy = pure_pursuit(env)
   key = jax.random.PRNGKey(4)
   steps = list(rollout.drive(env, policy, 2, "R", key, max_steps=20))
-  xy, act, alive, outcome, n, _ = rollout.rollout(env, policy, [1], [-1.0], key, 20)
+  starts = rollout.EnvStarts(lanes=[1], directions=[-1.0])
+  xy, act, alive, outcome, n, _ = rollout.rollout(env, policy, starts, key, 20)
   assert len(steps) == int(n[0]) + 1  # the start, then every step
   np.testing.assert_allclose(np.stack([q[:2] for q, _, _ in steps[1:]]), xy[:n[0], 0],
                              atol=1e-6)

@@ -14,7 +14,7 @@ import pytest
 
 from mjxvine.config import WorldConfig
 from mjxvine.worlds import load_test_world
-from mjxvine.worlds.blocks import block_to_input, vineyard_from_rows
+from mjxvine.worlds.blocks import BlockFrame, block_to_input, vineyard_from_rows
 from mjxvine.worlds.geo import (WGS84_A, WGS84_E2, local_to_lonlat, lonlat_to_local,
                                 read_vineyard, tangent_plane_error_m, write_csv, write_geojson)
 from mjxvine.worlds.layout import WorldFileError
@@ -90,7 +90,8 @@ def test_a_generated_world_round_trips_through_geojson(tmp_path):
   assert np.abs(back.plant_xy - world.plant_xy).max() < 1e-3
   np.testing.assert_allclose(np.sort(back.plant_xy, 0), np.sort(world.plant_xy, 0), atol=1e-3)
   # the lanes a file world has from these rows (midlines, median widths) ...
-  direct = vineyard_from_rows(world.rows(), CFG, robot_width_m=ROBOT_W, heading_rad=0.0)
+  direct = vineyard_from_rows(world.rows(), CFG, robot_width_m=ROBOT_W,
+                              frame=BlockFrame(heading_rad=0.0))
   shift = -np.asarray(direct.frame["offset_m"])
   direct_lanes = [l.centerline + shift for l in direct.lanes]
   for lb, line in zip(back.lanes, direct_lanes):
@@ -389,7 +390,7 @@ def test_the_command_lines_refuse_a_bad_file_in_one_line_and_write_nothing(tmp_p
   if isinstance(content, dict):
     content = json.dumps(content)
   path.write_bytes(content if isinstance(content, bytes) else content.encode())
-  for run, argv in ((worlds_main, ["--from", str(path)]),
+  for run, argv in ((worlds_main, ["--world", str(path)]),
                     (evaluate_main, ["--policy", "oracle", "--world", str(path)])):
     out = tmp_path / "out"
     assert run([*argv, "--out", str(out)]) == 2
@@ -400,7 +401,7 @@ def test_the_command_lines_refuse_a_bad_file_in_one_line_and_write_nothing(tmp_p
 
 def test_the_worlds_command_writes_a_block(tmp_path, capsys):
   from mjxvine.worlds.__main__ import main as worlds_main
-  assert worlds_main(["--from", str(EXAMPLE), "--out", str(tmp_path / "block")]) == 0
+  assert worlds_main(["--world", str(EXAMPLE), "--out", str(tmp_path / "block")]) == 0
   printed = capsys.readouterr().out
   assert "8 lanes, inter-row 2.40 m" in printed and "lane 8: 90.5 m long, 2.40 m wide" in printed
   doc = json.loads((tmp_path / "block" / "world.json").read_text())
@@ -411,7 +412,7 @@ def test_the_worlds_command_writes_a_block(tmp_path, capsys):
 def test_the_vineyard_results_page_is_its_records():
   """Every figure of docs/results/vineyards.md's tables is read from its record."""
   page = (ROOT / "docs" / "results" / "vineyards.md").read_text()
-  grid = json.loads((ROOT / "docs/results/vineyards/rows/rows.json").read_text())["grid"]
+  grid = json.loads((ROOT / "docs/results/vineyards/rows.json").read_text())["grid"]
   for v in grid.values():
     gap = f"{v['inter_row_m']:.1f}"
     line = next(l for l in page.splitlines() if l.startswith(f"| {gap} m |"))
@@ -419,7 +420,7 @@ def test_the_vineyard_results_page_is_its_records():
     slopes = sorted({g["slope_pct"] for g in grid.values()})
     assert cells[slopes.index(v["slope_pct"])] == (
         f"{v['success']}/{v['runs']} ({v['mae_m_rows']:.3f})"), line
-  block = json.loads((ROOT / "docs/results/vineyards/block/results.json").read_text())
+  block = json.loads((ROOT / "docs/results/vineyards/block-results.json").read_text())
   o = block["overall"]
   assert f"| {o['success']}/{o['runs']} to the end of the row |" in page
   assert f"| {o['mae_m_rows']:.3f} m (RMSE {o['rmse_m_rows']:.3f} m) |" in page
@@ -435,7 +436,7 @@ def test_train_refuses_a_bad_train_file_before_making_anything(tmp_path, capsys)
   run = tmp_path / "run"
   for path in (bad, tmp_path / "missing.geojson"):
     with pytest.raises(SystemExit) as e:
-      train_main(["--config", "experiments/smoke.yaml", "--run-dir", str(run),
+      train_main(["--config", "experiments/smoke.yaml", "--out", str(run),
                   "--set", f"world.train_files={path}"])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]

@@ -162,16 +162,16 @@ def test_robot_drives_on_terrain(cfg, robot):
 def test_worlds_cli(tmp_path):
   for kind, robot in (("train", "jackal"), ("test", "husky")):
     out = tmp_path / f"{kind}_{robot}"
-    assert worlds_main(["--kind", kind, "--seed", "0", "--robot", robot, "--out", str(out)]) == 0
+    assert worlds_main(["--kind", kind, "--world", "0", "--robot", robot, "--out", str(out)]) == 0
     m = mujoco.MjModel.from_xml_path(str(out / "world.xml"))
     mjx.put_model(m)
     doc = json.loads((out / "world.json").read_text())
     assert doc["kind"] == kind and doc["robot"] == robot and doc["seed"] == 0
-    assert set(doc["lanes"][0]) == {"id", "shape", "centerline", "eor_forward", "eor_reverse",
-                                    "width_m"}
+    assert set(doc["lanes"][0]) == {"id", "shape", "left_row", "right_row", "centerline",
+                                    "eor_forward", "eor_reverse", "width_m"}
     assert doc["lanes"][0]["width_m"] == pytest.approx(doc["inter_row_m"], abs=1e-4)
-    assert len(doc["rows"]) == len(doc["lanes"]) + 1
-    assert sum(len(r) for r in doc["rows"]) == sum(
+    assert len(doc["row_y0"]) == len(doc["lanes"]) + 1
+    assert len(doc["plant_xy"]) == len(doc["plant_row"]) == sum(
         mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, i).endswith("_trunk") and
         m.geom_pos[i, 2] > -50 for i in range(m.ngeom))
     assert (out / "world.png").stat().st_size > 10_000
@@ -207,7 +207,7 @@ def test_batch_of_different_worlds_steps(cfg):
 
 def test_worlds_cli_depth_at(tmp_path):
   out = tmp_path / "depth"
-  args = ["--kind", "train", "--seed", "0", "--out", str(out), "--depth-at", "3.0,-0.9,0.1",
+  args = ["--kind", "train", "--world", "0", "--out", str(out), "--depth-at", "3.0,-0.9,0.1",
           "--set", "camera.width=32", "--set", "camera.height=24"]
   assert worlds_main(args) == 0
   depth = np.load(out / "depth.npy")
@@ -235,7 +235,7 @@ def test_worlds_cli_depth_at_policy_camera(tmp_path, capsys):
           "fovy_deg": 52.0, "max_depth_m": 4.0}
   np.savez(policy, **{"__meta__": np.array(json.dumps(meta))})
   out = tmp_path / "depth"
-  assert worlds_main(["--kind", "train", "--seed", "0", "--out", str(out), "--depth-at",
+  assert worlds_main(["--kind", "train", "--world", "0", "--out", str(out), "--depth-at",
                       "3.0,-0.9,0.1", "--policy", str(policy)]) == 0
   cam = json.loads((out / "camera.json").read_text())
   assert (cam["height"], cam["width"], cam["fovx_deg"], cam["max_depth"]) == (20, 28, 70.0, 4.0)

@@ -6,7 +6,9 @@ its own arguments, both in the sub-command's module of this package, registered 
 `COMMANDS` (`mjxvine/bench/__main__.py`, the command line); `common.write_results(name,
 rows, out)` prints the rows as a table and writes them to JSON together with the device,
 the JAX backend, library versions, the host's CPU count and load. Add a sub-command by
-writing a module with those two functions and one `COMMANDS` entry.
+writing a module with those two functions and one `COMMANDS` entry (and its rough
+minutes on a 2-core CPU in `CPU_MINUTES`: `all`, and each sub-command on a CPU, first
+print what they will run and about how long it takes, as estimates).
 
 Sub-commands (module)
 - all (`__main__`): every sub-command with its defaults (`--quick`: small sizes), one

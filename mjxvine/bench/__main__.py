@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import Any, Callable
 
@@ -20,6 +21,7 @@ from mjxvine.bench.env import add_env_args, bench_env
 from mjxvine.bench.physics import add_physics_args, bench_physics
 from mjxvine.bench.train import add_train_args, bench_train
 from mjxvine.bench.update import add_update_args, bench_update
+from mjxvine.cli import CommandParser
 
 # name -> (run(args, cfg) -> rows, add_arguments(parser), one-line help)
 COMMANDS: dict[str, tuple[Callable[[argparse.Namespace, Any], list[dict]],
@@ -51,28 +53,81 @@ QUICK_ARGS = {
 }
 
 
-def main(argv: list[str] | None = None) -> int:
-  parser = argparse.ArgumentParser(prog="python -m mjxvine.bench",
-                                   description=mjxvine.bench.__doc__,
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
-  sub = parser.add_subparsers(dest="command", required=True)
+# Rough wall-clock minutes of each sub-command on a 2-core x86-64 CPU (the machine of
+# docs/results/cpu-2core.md): (with its defaults, at `QUICK_ARGS`). Estimates, not
+# measurements of these exact runs: compile seconds and rates of the bench-*-cpu-2core.json
+# records times the default sizes; `train` is fast.yaml's 64 gradient steps of batch 512 at
+# 112x112 per iteration, about 2.6 s each (cpu-update-speed.md), for 4-5 chunks of 20
+# iterations at each of 16 and 64 envs; `brax` is the 336 s of compare.yaml's two learners.
+CPU_MINUTES = {"depth": (2, 0.5), "physics": (2, 0.5), "env": (5, 1), "deploy": (1, 0.5),
+               "update": (3, 1), "train": (420, 2), "brax": (6, 4)}
+
+
+def _duration(minutes: float) -> str:
+  """"about 40 minutes", "about 7 hours"."""
+  if minutes < 1:
+    return "under a minute"
+  if minutes < 90:
+    return f"about {minutes:.0f} minute{'s' if round(minutes) != 1 else ''}"
+  return f"about {minutes / 60:.0f} hours"
+
+
+def plan_line(command: str, quick: bool = False) -> str | None:
+  """What `bench <command>` is about to run and its rough cost on this backend, in one line;
+  None for a sub-command off the CPU (no estimates there)."""
+  import jax  # pylint: disable=import-outside-toplevel
+  backend = jax.default_backend()
+  cores = "a 2-core CPU" + ("" if os.cpu_count() == 2 else f" (this one has {os.cpu_count()})")
+  full = sum(m for m, _ in CPU_MINUTES.values())
+  fast = sum(q for _, q in CPU_MINUTES.values())
+  if command == "all":
+    what = f"bench all{' --quick' if quick else ''} on {backend}: {len(COMMANDS)} " \
+           f"benchmarks ({', '.join(COMMANDS)})"
+    if backend != "cpu":
+      return f"{what}; no time estimate for this backend (the estimates are a CPU's)"
+    if quick:
+      return f"{what} at small sizes, {_duration(fast)} on {cores} (an estimate)"
+    return (f"{what}, {_duration(full)} on {cores}, nearly all of it bench train "
+            f"(fast.yaml's updates); --quick: {_duration(fast)} (estimates)")
+  if backend != "cpu":
+    return None
+  minutes, small = CPU_MINUTES[command]
+  return (f"bench {command} on cpu: {_duration(minutes)} with its default sizes on {cores}; "
+          f"at bench all --quick's sizes {_duration(small)} (estimates)")
+
+
+def parser() -> argparse.ArgumentParser:
+  """The command line: one sub-command per benchmark, and `all`."""
+  p = CommandParser(prog="python -m mjxvine.bench", description=mjxvine.bench.__doc__)
+  sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                         help="the benchmark to run (each has its own --help)")
   for name, (_, add_args, doc) in COMMANDS.items():
-    p = sub.add_parser(name, help=doc)
-    p.add_argument("--out", default=f"bench-{name}.json",
-                   help="write the results to this JSON file ('' for none)")
-    config_lib.add_config_args(p)
-    add_args(p)
-  p = sub.add_parser("all", help="every sub-command with its defaults; one bench.json")
-  p.add_argument("--out", default="bench.json", help="the combined JSON file")
-  p.add_argument("--quick", action="store_true",
+    s = sub.add_parser(name, help=doc, description=doc)
+    s.add_argument("--out", default=f"bench-{name}.json", metavar="FILE",
+                   help=f"write the results to this JSON file (default bench-{name}.json; "
+                        "'' for none)")
+    config_lib.add_config_args(s)
+    add_args(s)
+  s = sub.add_parser("all", help="every sub-command with its defaults; one bench.json",
+                     description="every sub-command with its defaults; one bench.json")
+  s.add_argument("--out", default="bench.json", metavar="FILE",
+                 help="the combined JSON file (default bench.json; '' for none)")
+  s.add_argument("--quick", action="store_true",
                  help="small sizes (a CPU smoke run: 4 envs, 40x40 images, batch 32)")
-  args = parser.parse_args(argv)
+  return p
+
+
+def main(argv: list[str] | None = None) -> int:
+  args = parser().parse_args(argv)
   if args.out:  # before the benchmark runs, not after
     try:
       check_output(args.out, "--out")
     except OutputError as e:
       print(f"error: {e}", file=sys.stderr)
       return 2
+  line = plan_line(args.command, getattr(args, "quick", False))
+  if line:
+    print(line, file=sys.stderr, flush=True)
   if args.command == "all":
     return run_all(args.out, args.quick)
   cfg = config_lib.config_from_args(args)
@@ -93,7 +148,7 @@ def run_all(out: str, quick: bool = False) -> int:
   sizes) and writes one JSON: {"environment": ..., "<command>": {"rows": [...], ...}}."""
   doc = {"environment": environment()}
   for name, (run, add_args, _) in COMMANDS.items():
-    p = argparse.ArgumentParser()
+    p = CommandParser()
     config_lib.add_config_args(p)
     add_args(p)
     args = p.parse_args(QUICK_ARGS.get(name, []) if quick else [])
@@ -107,4 +162,6 @@ def run_all(out: str, quick: bool = False) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from mjxvine.atomic import command_main
+  # SIGINT / SIGTERM: 130 / 143 in one line, the outputs of the unfinished set removed
+  command_main(main)

@@ -96,7 +96,7 @@ def bench_brax(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
     train_s += time.perf_counter() - t
     restored = checkpoint.Checkpoints(run, False).restore(template) if k else None
     state = restored[1] if restored else template
-    m = evaluator.run_evaluation(state.learner.policy_params, training_metrics={})
+    m = evaluator.run_evaluation(state.learner.averaged_actor_params, training_metrics={})
     rows.append(dict(learner="mjxvine.sac", env_steps=int(state.env_steps), train_s=train_s,
                      success=float(m["eval/episode_success"]),
                      episode_return=float(m["eval/episode_reward"])))

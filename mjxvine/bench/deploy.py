@@ -25,7 +25,9 @@ def add_deploy_args(p: argparse.ArgumentParser) -> None:
                  help="timed single-image calls per row")
   p.add_argument("--threads", default="1,2", type=int_list,
                  help="comma-separated BLAS (numpy) / intra-op (onnxruntime) thread counts")
-  p.add_argument("--seed", type=int, default=0, help="seed of the random actor weights")
+  p.add_argument("--seed", type=int, default=0, metavar="N",
+                 help="seed of the random actor weights and of the inputs of the numpy / "
+                      "onnxruntime agreement check (default 0)")
 
 
 def bench_deploy(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
@@ -51,8 +53,8 @@ def bench_deploy(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]))
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
       env[var] = str(threads)
-    cmd = [sys.executable, "-m", "mjxvine.latency", str(path), "--calls", str(args.calls),
-           *flags]
+    cmd = [sys.executable, "-m", "mjxvine.latency", "--policy", str(path), "--calls",
+           str(args.calls), *flags]
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
     if out.returncode != 0:
       raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr}")

@@ -35,7 +35,9 @@ def add_depth_args(p: argparse.ArgumentParser) -> None:
                  help="also time lax.map over chunks of this many images for larger batches "
                       "(default 16 on CPU, 0 elsewhere; 0: skip)")
   p.add_argument("--min-time", type=float, default=1.0, help="seconds per measurement")
-  p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--seed", type=int, default=0, metavar="N",
+                 help="seed of the train vineyard rendered and of the random robot poses "
+                      "in it (default 0)")
 
 
 def bench_depth(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:

@@ -31,9 +31,9 @@ def add_update_args(p: argparse.ArgumentParser) -> None:
                  help="comma-separated SAC batch sizes")
   p.add_argument("--grad-steps", type=positive_int, default=None,
                  help="gradient steps per timed call (default sac.grad_steps_per_iter)")
-  p.add_argument("--conv-impl", default=None, choices=("xla", "dot", "shift", "native"),
+  p.add_argument("--conv-impl", default=None, choices=("xla", "shift", "native"),
                  help="the conv tower's convolutions (mjxvine.tower.CONV_IMPLS; "
-                      "default: the trainer's, sac.conv_impl)")
+                      "default: the trainer's, train.conv_impl)")
   p.add_argument("--compare", action="store_true",
                  help="also time the program compiled with XLA's default options (on a "
                       "CPU: with YNNPACK's convolutions)")
@@ -57,7 +57,7 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
   The update and the matmul are timed in turn, `--rounds` times each, so that both see
   the same load; the row gives the medians, the ratio the median of the rounds' ratios
   (and their range): steadier than gradient steps/s on a shared machine. The program is
-  compiled with `sac.learner_compiler_options()`, as the trainer compiles it ("options"
+  compiled with `networks.learner_compiler_options()`, as the trainer compiles it ("options"
   column). With the native tower the flops are G times those of one step with XLA's
   convolutions (XLA's cost analysis does not count an FFI call's, nor a loop's trips)."""
   from mjxvine import networks as nw  # pylint: disable=import-outside-toplevel
@@ -66,10 +66,10 @@ def bench_update(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
   from mjxvine.training.iteration import scan_chunks  # pylint: disable=import-outside-toplevel
   rows = []
   g = args.grad_steps or cfg.sac.grad_steps_per_iter
-  host = not scan_chunks(cfg)
-  tuned = sac_lib.learner_compiler_options()
+  host = not scan_chunks()
+  tuned = nw.learner_compiler_options()
   variants = [("learner", tuned)] + ([("xla default", None)] if args.compare and tuned else [])
-  conv_impl = args.conv_impl or sac_lib.learner_conv_impl(cfg.sac.conv_impl)
+  conv_impl = args.conv_impl or nw.learner_conv_impl(cfg.train.conv_impl)
   # the vineyard's mirror image, for configs with sac.mirror_augment / mirror_average
   mirror = (VineyardEnv.mirror_obs, VineyardEnv.mirror_action)
   for b in (int(x) for x in args.batch_sizes.split(",")):

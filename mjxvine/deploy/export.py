@@ -50,8 +50,8 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
       "action_low": low, "action_high": high,
       "control_dt": cfg.env.control_dt, "config_hash": config_lib.config_hash(cfg),
       # the state's yaw: "start", the IMU yaw minus the yaw at the row entrance; "world",
-      # the IMU yaw plus yaw_offset_deg (both wrapped to [-pi, pi)); NumpyPolicy.yaw_input
-      "yaw_reference": cfg.env.yaw_reference, "yaw_offset_deg": cfg.env.yaw_offset_deg,
+      # the IMU yaw itself (both wrapped to [-pi, pi)); NumpyPolicy.yaw_input
+      "yaw_reference": cfg.env.yaw_reference,
       # the action is the mean of the actor's on the image and its mirror (sac.mirror_average)
       "mirror_average": cfg.sac.mirror_average,
       # the whole training config: `evaluate --policy FILE.npz` then evaluates as the run

@@ -3,7 +3,8 @@
 `numpy_latency(path)` and `onnx_latency(path, threads)` time one decision through the public
 APIs (`NumpyPolicy.__call__`, `InferenceSession.run`) on a random (H, W) depth image in
 [0, max_depth] metres and a (3,) state, and return a dict of milliseconds (`measure`); the
-command line is `python -m mjxvine.latency`.
+command line is `python -m mjxvine.latency`. A file that is not a usable policy raises
+`PolicyError` (one line), never another error.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from mjxvine.deploy.numpy_policy import NumpyPolicy, PolicyFormatError
+from mjxvine.deploy.numpy_policy import NumpyPolicy, PolicyError, PolicyFormatError
 from mjxvine.formatting import first_line
 
 
@@ -38,18 +39,28 @@ def measure(fn: Callable[[], object], calls: int = 1000, warmup: int = 50) -> di
               cpu_ms=1e3 * cpu / calls, calls=calls, load_1m=load)
 
 
-def _inputs(h: int, w: int, max_depth: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-  """A random depth image (h, w) float32 metres and state (3,) float32."""
+def _inputs(h: int, w: int, max_depth: float, seed: int,
+            state_size: int = 3) -> tuple[np.ndarray, np.ndarray]:
+  """A random depth image (h, w) float32 metres and state (state_size,) float32:
+  [0.3, 0.1, 0.2] (v_prev m/s, w_prev rad/s, yaw rad), zeros after."""
   rng = np.random.default_rng(seed)
   depth = rng.uniform(0.0, max_depth, (h, w)).astype(np.float32)
-  state = np.array([0.3, 0.1, 0.2], np.float32)
+  state = np.zeros(state_size, np.float32)
+  state[:3] = [0.3, 0.1, 0.2][:state_size]
   return depth, state
 
 
 def numpy_latency(path: str | Path, calls: int = 1000, seed: int = 0) -> dict:
-  """`measure` of `NumpyPolicy.load(path)(depth, state)` for one (H, W) image."""
+  """`measure` of `NumpyPolicy.load(path)(depth, state)` for one (H, W) image; the
+  state's entries clipped into what the policy accepts (its action box)."""
   policy = NumpyPolicy.load(path)
-  depth, state = _inputs(policy.height, policy.width, policy.max_depth, seed)
+  depth, state = _inputs(policy.height, policy.width, policy.max_depth, seed,
+                         policy.state_size)
+  state = np.clip(state, policy.state_lo, policy.state_hi)
+  try:  # a policy that refuses even this input (an overflow): say which file, once
+    policy(depth, state)
+  except PolicyError as e:
+    raise type(e)(f"{path}: {e}") from None
   return measure(lambda: policy(depth, state), calls)
 
 
@@ -69,8 +80,25 @@ def onnx_latency(path: str | Path, threads: int = 1, calls: int = 1000, seed: in
     sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
   except Exception as e:  # noqa: BLE001 - onnxruntime's load errors have no public base
     raise PolicyFormatError(f"{path}: not a valid ONNX model ({first_line(e)})") from None
-  _, h, w, _ = sess.get_inputs()[0].shape
-  meta = json.loads(sess.get_modelmeta().custom_metadata_map.get("mjxvine_meta", "{}"))
-  depth, state = _inputs(h, w, float(meta.get("max_depth_m", 5.0)), seed)
+  shapes = {i.name: i.shape for i in sess.get_inputs()}
+  depth_shape, state_shape = shapes.get("depth"), shapes.get("state")
+  fixed = lambda dims: all(isinstance(d, int) and 1 <= d <= 4096 for d in dims)
+  if not (depth_shape and state_shape and len(depth_shape) == 4 and len(state_shape) == 2 and
+          fixed(depth_shape[1:3]) and fixed(state_shape[1:])):
+    raise PolicyFormatError(f"{path}: not an mjxvine policy graph (inputs {shapes}: expected "
+                            "depth (B, H, W, 1) and state (B, S))")
+  _, h, w, _ = depth_shape
+  try:
+    meta = json.loads(sess.get_modelmeta().custom_metadata_map.get("mjxvine_meta", "{}"))
+    max_depth = float(meta.get("max_depth_m", 5.0))
+    if not 0.0 < max_depth <= 1e3:
+      raise ValueError(f"max_depth_m {max_depth}")
+  except Exception as e:  # noqa: BLE001 - JSON, a non-object, a non-number
+    raise PolicyFormatError(f"{path}: unreadable mjxvine_meta ({first_line(e)})") from None
+  depth, state = _inputs(h, w, max_depth, seed, state_shape[1])
   feed = {"depth": depth[None, :, :, None], "state": state[None]}
+  try:  # once: a graph that does not run on its own inputs is no policy
+    sess.run(["action"], feed)
+  except Exception as e:  # noqa: BLE001 - onnxruntime's run errors have no public base
+    raise PolicyFormatError(f"{path}: the graph does not run ({first_line(e)})") from None
   return measure(lambda: sess.run(["action"], feed), calls)

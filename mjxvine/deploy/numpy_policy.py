@@ -20,10 +20,25 @@ numpy is imported, or `NumpyPolicy.load(path, blas_threads=1)` with threadpoolct
 installed: extra OpenBLAS threads that must wait for a core make each decision several
 times slower. Calls are thread-safe (buffers are per thread).
 
-Input contract. An input the policy was not trained for gets no action: it raises
-`PolicyInputError` (a `PolicyError`, a `ValueError`) saying what was received and what is
-expected; file problems raise `PolicyFormatError`. A robot should stop on either. The
-checks are a few vectorised min/max passes (microseconds at 20 Hz).
+Errors. Everything `NumpyPolicy` raises, loading or acting, is a `PolicyError` (a
+`ValueError`) with a one-line message; a robot should stop on any. An input the policy was
+not trained for gets no action: it raises `PolicyInputError` saying what was received and
+what is expected (a few vectorised min/max passes: microseconds at 20 Hz). A file that is
+unreadable, incomplete, inconsistent or has non-finite weights raises `PolicyFormatError`
+at load; a network output that is not finite for a finite input (an overflow) raises
+`PolicyError`. Any action returned is finite and inside the action box.
+
+Policy file limits, checked on the zip directory and on each entry's .npy header before
+any entry is unpacked (a crafted entry that unpacks to gigabytes is refused unread):
+MAX_FILE_BYTES (128 MiB) on disk, MAX_DIRECTORY_BYTES (1 MiB) of zip directory and
+MAX_ENTRIES (256) entries; `__meta__` at most MAX_META_BYTES (1 MiB) unpacked, a
+0-d unicode array holding a JSON object; the actor's arrays ("tower/conv<i>/", "dense<i>/",
+"mean/", "log_std/" + "kernel" or "bias") floating point, each at most MAX_ARRAY_BYTES
+(32 MiB) unpacked and all read at most MAX_TOTAL_BYTES (64 MiB); any other entry at most
+MAX_OTHER_BYTES (64 KiB), never read. `NumpyPolicy.load` reads only `__meta__` and the
+arrays its metadata names; the metadata is checked field by field (`policy_layout`):
+images of at most MAX_IMAGE_SIDE (512) pixels a side, at most MAX_LAYERS (16) conv and 16
+hidden layers, strides 1..MAX_STRIDE (4), a finite action box with low < high.
 
 - depth: (H, W), (H, W, 1), (B, H, W) or (B, H, W, 1) with B >= 1, H x W the metadata's
   `image_size`. Floating-point arrays are metres. Integer arrays (a sensor's counts, e.g.
@@ -60,8 +75,11 @@ checks are a few vectorised min/max passes (microseconds at 20 Hz).
 
 from __future__ import annotations
 
+import ast
 import json
 import math
+import re
+import struct
 import threading
 import zipfile
 from pathlib import Path
@@ -91,6 +109,30 @@ STATE_UNITS = {"v_prev": "m/s", "w_prev": "rad/s", "yaw": "rad"}
 # ROS sensor_msgs/Image depth encodings (REP 118): (dtype, metres per count or None for
 # metres); 16UC1 0 means no return.
 ROS_DEPTH_ENCODINGS = {"16UC1": (np.uint16, 0.001), "32FC1": (np.float32, None)}
+# Policy file limits (the module docstring), checked before anything is unpacked: the
+# paper's actor is 0.4 MB of arrays and a 14 kB __meta__, so these leave >100x room.
+MAX_FILE_BYTES = 128 << 20
+MAX_DIRECTORY_BYTES = 1 << 20  # the zip's central directory: names and sizes of entries
+MAX_ENTRIES = 256
+MAX_META_BYTES = 1 << 20
+MAX_ARRAY_BYTES = 32 << 20
+MAX_TOTAL_BYTES = 64 << 20
+MAX_OTHER_BYTES = 64 << 10
+MAX_NPY_HEADER_BYTES = 10000  # numpy's own bound on an .npy header
+# Metadata bounds (`policy_layout`): the network a file may describe.
+MAX_IMAGE_SIDE = 512
+MAX_LAYERS = 16  # conv layers; also hidden layers
+MAX_STRIDE = 4
+MAX_TOWER_PAD = 16
+MAX_ACTIONS = 16
+MAX_STATE = 64
+# The actor's entries by name ("dense0/kernel"); others are not read.
+ACTOR_ENTRY = re.compile(r"(tower/conv\d{1,2}|dense\d{1,2}|mean|log_std)/(kernel|bias)")
+# Conv buffers of one chunk of a batch (bytes): a batch runs in chunks of at most this
+# much workspace (one image at least), and each thread keeps the buffers of its last
+# CACHED_SHAPES input shapes only, so a call on thousands of images holds no more after.
+WORKSPACE_BYTES = 32 << 20
+CACHED_SHAPES = 2
 
 
 class PolicyError(ValueError):
@@ -150,8 +192,76 @@ def _maxpool2(x: np.ndarray) -> np.ndarray:
   return np.maximum(top, np.maximum(x[:, 1::2, 0::2], x[:, 1::2, 1::2]), out=top)
 
 
-def read_policy_file(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
-  """(arrays, meta) of an .npz policy file; `PolicyFormatError` if unreadable/another version."""
+def _first_line(e: BaseException) -> str:
+  """An exception's message as one short line (its type when it has none)."""
+  text = str(e).strip()
+  return text.splitlines()[0][:160] if text else type(e).__name__
+
+
+def _zip_directory_bytes(path: Path, size: int) -> int:
+  """The size of the central directory of the zip archive at `path` (`size` bytes), from
+  its end record, found as zipfile finds it; PolicyFormatError for a zip64 archive (a
+  policy file never needs one) or none."""
+  with open(path, "rb") as f:
+    n = min(size, 22 + 0xFFFF)  # the end record (22 bytes) and at most a 64 kB comment
+    f.seek(size - n)
+    tail = f.read(n)
+  at = len(tail) - 22
+  if not (at >= 0 and tail[at:at + 4] == b"PK\x05\x06" and tail[-2:] == b"\0\0"):
+    at = tail.rfind(b"PK\x05\x06")
+  if at < 0 or at + 22 > len(tail):
+    raise PolicyFormatError("no zip end record")
+  if at >= 20 and tail[at - 20:at - 16] == b"PK\x06\x07":
+    raise PolicyFormatError("a zip64 archive (a policy file is far smaller)")
+  return struct.unpack("<I", tail[at + 12:at + 16])[0]
+
+
+def _read_npy(zf: zipfile.ZipFile, info: zipfile.ZipInfo, kind: str) -> np.ndarray:
+  """The array of one .npy entry, its header checked first: dtype kind `kind` ("f"
+  floating point, "U" unicode), a shape whose bytes are the entry's declared size
+  (`info.file_size`, checked against the limits before). Unpacks at most that size."""
+  name = info.filename
+  with zf.open(info) as f:
+    magic = f.read(8)
+    if len(magic) != 8 or magic[:6] != b"\x93NUMPY" or magic[6] not in (1, 2, 3):
+      raise PolicyFormatError(f"{name} is not an .npy array")
+    width = 2 if magic[6] == 1 else 4
+    raw = f.read(width)
+    size = int.from_bytes(raw, "little") if len(raw) == width else 0
+    if not 0 < size <= MAX_NPY_HEADER_BYTES:
+      raise PolicyFormatError(f"{name}: .npy header of {size} bytes")
+    text = f.read(size)
+    try:
+      header = ast.literal_eval(text.decode("utf-8" if magic[6] == 3 else "latin1"))
+      descr, shape, fortran = header["descr"], header["shape"], header["fortran_order"]
+      if not (isinstance(descr, str) and isinstance(shape, tuple) and len(shape) <= 8 and
+              all(type(d) is int and d >= 0 for d in shape) and isinstance(fortran, bool)):
+        raise ValueError(header)
+      dtype = np.dtype(descr)
+    except Exception:  # noqa: BLE001 - whatever a crafted header makes of these
+      raise PolicyFormatError(f"{name}: unreadable .npy header") from None
+    if dtype.hasobject:  # numpy would unpickle it: never right for a policy
+      raise PolicyFormatError(f"{name} holds pickled object arrays")
+    if dtype.kind != kind:
+      want = "floating point" if kind == "f" else "a unicode string"
+      raise PolicyFormatError(f"{name} of dtype {dtype}: expected {want}")
+    nbytes = math.prod(shape) * dtype.itemsize
+    if 8 + width + size + nbytes != info.file_size:
+      raise PolicyFormatError(f"{name}: its header declares {nbytes} bytes of {dtype} "
+                              f"{shape}, the entry holds {info.file_size - 8 - width - size}")
+    out = np.empty(shape[::-1] if fortran else shape, dtype)
+    buf, got = out.reshape(-1).view(np.uint8), 0
+    while got < nbytes:  # in 1 MiB pieces: zipfile copies each piece once more
+      n = f.readinto(buf[got:got + (1 << 20)])
+      if not n:
+        raise PolicyFormatError(f"{name} is truncated")
+      got += n
+  return out.T if fortran else out
+
+
+def _read_policy(path: str | Path, choose) -> tuple[dict[str, np.ndarray], dict]:
+  """(arrays, meta) of an .npz policy file, reading the arrays `choose(meta, names)`
+  picks of the actor's entries present; see `read_policy_file`."""
   path = Path(path)
   if not path.is_file():
     raise PolicyFormatError(f"{path}: no such policy file")
@@ -161,26 +271,64 @@ def read_policy_file(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
   if not zipfile.is_zipfile(path):
     raise PolicyFormatError(f"{invalid} (not an .npz archive)")
   try:
-    with np.load(path, allow_pickle=False) as data:
-      arrays = {k: data[k] for k in data.files}
-  except Exception as e:  # noqa: BLE001 - a truncated or corrupted archive, object arrays
-    text = str(e).splitlines()[0][:160] if str(e) else type(e).__name__
-    if "allow_pickle" in text:  # numpy's hint to load pickles: never right for a policy
-      text = "holds pickled object arrays"
-    raise PolicyFormatError(f"{invalid} ({text})") from None
-  if META_KEY not in arrays:
-    raise PolicyFormatError(f"{invalid} (no {META_KEY} entry: not an mjxvine policy file)")
-  try:
-    meta = json.loads(str(arrays.pop(META_KEY)))
-    if not isinstance(meta, dict):
-      raise ValueError(f"a JSON {type(meta).__name__}, not an object")
-  except ValueError as e:
-    raise PolicyFormatError(f"{invalid} (unreadable metadata: {e})") from None
-  version = meta.get("format_version")
-  if version != FORMAT_VERSION:
-    raise PolicyFormatError(f"{path}: policy format version {version!r}; this mjxvine reads "
-                            f"version {FORMAT_VERSION} (re-export the checkpoint)")
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+      raise PolicyFormatError(f"{size} bytes on disk: a policy file is at most "
+                              f"{MAX_FILE_BYTES} bytes")
+    directory = _zip_directory_bytes(path, size)
+    if directory > MAX_DIRECTORY_BYTES:  # zipfile would hold all of its entries
+      raise PolicyFormatError(f"a zip directory of {directory} bytes: at most "
+                              f"{MAX_DIRECTORY_BYTES}")
+    with zipfile.ZipFile(path) as zf:
+      infos = zf.infolist()
+      if len(infos) > MAX_ENTRIES:
+        raise PolicyFormatError(f"{len(infos)} entries: at most {MAX_ENTRIES}")
+      entries = {}
+      for info in infos:  # the declared (unpacked) sizes, before anything is unpacked
+        key = info.filename[:-4] if info.filename.endswith(".npy") else None
+        if key != META_KEY and not (key and ACTOR_ENTRY.fullmatch(key)):
+          if info.file_size > MAX_OTHER_BYTES:
+            raise PolicyFormatError(f"entry {info.filename[:60]!r} of {info.file_size} bytes "
+                                    f"is no policy array (others: at most {MAX_OTHER_BYTES})")
+          continue  # not the policy's: never read
+        limit = MAX_META_BYTES if key == META_KEY else MAX_ARRAY_BYTES
+        if info.file_size > limit:
+          raise PolicyFormatError(f"{info.filename} of {info.file_size} bytes: at most {limit}")
+        if key in entries:
+          raise PolicyFormatError(f"two {info.filename} entries")
+        entries[key] = info
+      if META_KEY not in entries:
+        raise PolicyFormatError(f"{invalid} (no {META_KEY} entry: not an mjxvine policy file)")
+      try:
+        meta = json.loads(str(_read_npy(zf, entries.pop(META_KEY), "U")[()]))
+        if not isinstance(meta, dict):
+          raise ValueError(f"a JSON {type(meta).__name__}, not an object")
+      except (ValueError, RecursionError) as e:
+        raise PolicyFormatError(f"{invalid} (unreadable metadata: {_first_line(e)})") from None
+      version = meta.get("format_version")
+      if version != FORMAT_VERSION:
+        raise PolicyFormatError(f"{path}: policy format version {repr(version)[:20]}; this "
+                                f"mjxvine reads version {FORMAT_VERSION} (re-export the "
+                                "checkpoint)")
+      names = [n for n in choose(meta, sorted(entries)) if n in entries]
+      total = sum(entries[n].file_size for n in names)
+      if total > MAX_TOTAL_BYTES:
+        raise PolicyFormatError(f"arrays of {total} bytes: at most {MAX_TOTAL_BYTES}")
+      arrays = {n: _read_npy(zf, entries[n], "f") for n in names}
+  except PolicyFormatError as e:
+    text = str(e)
+    raise PolicyFormatError(text if text.startswith(str(path)) else f"{invalid} ({text})") \
+        from None
+  except Exception as e:  # noqa: BLE001 - a truncated or corrupted archive (zipfile, zlib)
+    raise PolicyFormatError(f"{invalid} ({_first_line(e)})") from None
   return arrays, meta
+
+
+def read_policy_file(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
+  """(arrays, meta) of an .npz policy file: the actor's arrays by name ("tower/conv0/kernel",
+  "log_std/bias", ...; other entries are not read) and the metadata. `PolicyFormatError`
+  if it is unreadable, of another format version, or over the module's file limits."""
+  return _read_policy(path, lambda meta, names: names)
 
 
 def set_blas_threads(n: int) -> bool:
@@ -270,92 +418,263 @@ def fov_window(size: int, focal: float, centre: float, fov_deg: float) -> tuple[
   return (start, stop) if stop - start >= 1 else (0, size)
 
 
+_MISSING = object()
+# per image of the conv tower's buffers, bytes (the paper's 112x112 actor: 4 MB)
+MAX_IMAGE_WORK_BYTES = 256 << 20
+
+
+def _bad_meta(key: str, value, expected: str) -> PolicyFormatError:
+  text = repr(value)
+  return PolicyFormatError(f"policy metadata {key} {text if len(text) <= 60 else text[:57] + '...'}"
+                           f": expected {expected}")
+
+
+def _meta_value(meta: dict, key: str, default=_MISSING):
+  if key in meta:
+    return meta[key]
+  if default is _MISSING:
+    raise PolicyFormatError(f"policy metadata lacks {key}")
+  return default
+
+
+def _is_int(v) -> bool:
+  return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:  # finite: JSON's NaN and Infinity read as floats
+  return _is_int(v) or (isinstance(v, float) and math.isfinite(v))
+
+
+def _meta_number(meta: dict, key: str, lo: float, hi: float, default=_MISSING) -> float:
+  """meta[key], a number in (lo, hi]."""
+  v = _meta_value(meta, key, default)
+  if v is not default and not (_is_number(v) and lo < v <= hi):
+    raise _bad_meta(key, v, f"a number in ({lo:g}, {hi:g}]")
+  return v if v is None else float(v)
+
+
+def _meta_ints(meta: dict, key: str, n: int, lo: int, hi: int, default=_MISSING) -> tuple:
+  """meta[key], a list of n integers in [lo, hi]."""
+  v = _meta_value(meta, key, default)
+  if not (isinstance(v, (list, tuple)) and len(v) == n and
+          all(_is_int(x) and lo <= x <= hi for x in v)):
+    raise _bad_meta(key, v, f"{n} integers in [{lo}, {hi}]")
+  return tuple(v)
+
+
+def _tower_sizes(h: int, w: int, layers) -> list[tuple[int, int, int, int]]:
+  """(ho, wo, h', w') of each conv layer (stride, pool) on an h x w input: its conv output
+  as computed (even-sized with a pool) and the next layer's input size."""
+  sizes = []
+  for stride, pool in layers:
+    ho, wo = (h - 3) // stride + 1, (w - 3) // stride + 1
+    if pool:
+      ho, wo = ho // 2 * 2, wo // 2 * 2
+    h, w = (ho // 2, wo // 2) if pool else (ho, wo)
+    sizes.append((ho, wo, h, w))
+  return sizes
+
+
+def policy_layout(meta: dict) -> dict:
+  """The network and action box a policy's metadata describes, every field checked
+  (`PolicyFormatError` naming the first bad one). Keys: image_size (H, W) px, max_depth_m,
+  depth_scale (the input multiplier, 1 / m), action_low and action_high ((A,) float32,
+  low < high), conv_layers [(stride, pool)], num_hidden, tower_pad (bottom, right) px,
+  mirror_average, state_layout (names or None), yaw_reference ("start" or "world"),
+  yaw_offset_deg, and control_dt (s), fovx_deg, fovy_deg (None where absent)."""
+  if not isinstance(meta, dict):
+    raise PolicyFormatError(f"policy metadata is a {type(meta).__name__}, not a JSON object")
+  out = {"image_size": _meta_ints(meta, "image_size", 2, 1, MAX_IMAGE_SIDE),
+         "max_depth_m": _meta_number(meta, "max_depth_m", 0.0, SENSOR_DEPTH_LIMIT_M),
+         "depth_scale": _meta_number(meta, "depth_scale", 0.0, 1e6, 1.0)}
+  for key in ("action_low", "action_high"):
+    v = _meta_value(meta, key)
+    if not (isinstance(v, (list, tuple)) and 1 <= len(v) <= MAX_ACTIONS and
+            all(_is_number(x) and abs(x) <= 1e6 for x in v)):
+      raise _bad_meta(key, v, f"1 to {MAX_ACTIONS} numbers in [-1e6, 1e6]")
+    out[key] = np.asarray(v, np.float32)
+  low, high = out["action_low"], out["action_high"]
+  if low.shape != high.shape or not (low < high).all():
+    raise PolicyFormatError(f"policy action box {low.tolist()}..{high.tolist()}: expected "
+                            "as many lows as highs, each below its high")
+  layers = _meta_value(meta, "conv_layers")
+  if not (isinstance(layers, (list, tuple)) and 1 <= len(layers) <= MAX_LAYERS and
+          all(isinstance(l, (list, tuple)) and len(l) == 2 and _is_int(l[0]) and
+              1 <= l[0] <= MAX_STRIDE and isinstance(l[1], bool) for l in layers)):
+    raise _bad_meta("conv_layers", layers, f"1 to {MAX_LAYERS} [stride 1..{MAX_STRIDE}, "
+                    "pool true/false] pairs")
+  out["conv_layers"] = [(int(s), bool(p)) for s, p in layers]
+  num_hidden = _meta_value(meta, "num_hidden")
+  if not (_is_int(num_hidden) and 1 <= num_hidden <= MAX_LAYERS):
+    raise _bad_meta("num_hidden", num_hidden, f"an integer in [1, {MAX_LAYERS}]")
+  out["num_hidden"] = num_hidden
+  out["tower_pad"] = _meta_ints(meta, "tower_pad", 2, 0, MAX_TOWER_PAD, (0, 0))
+  for key in ("mirror_average",):
+    v = _meta_value(meta, key, False)
+    if not isinstance(v, bool):
+      raise _bad_meta(key, v, "true or false")
+    out[key] = v
+  names = _meta_value(meta, "state_layout", None)
+  if names is not None and not (isinstance(names, (list, tuple)) and len(names) <= MAX_STATE and
+                                all(isinstance(n, str) and len(n) <= 64 for n in names)):
+    raise _bad_meta("state_layout", names, f"at most {MAX_STATE} names")
+  out["state_layout"] = None if names is None else list(names)
+  out["yaw_reference"] = _meta_value(meta, "yaw_reference", "world")
+  if out["yaw_reference"] not in ("start", "world"):
+    raise _bad_meta("yaw_reference", out["yaw_reference"], '"start" or "world"')
+  out["yaw_offset_deg"] = _meta_number(meta, "yaw_offset_deg", -360.0 - 1e-9, 360.0, 0.0)
+  out["control_dt"] = _meta_number(meta, "control_dt", 0.0, 10.0, None)
+  for key in ("fovx_deg", "fovy_deg"):
+    out[key] = _meta_number(meta, key, 0.0, 180.0, None)
+  h, w = out["image_size"]
+  pad = out["tower_pad"]
+  if min(min(ho, wo, h1, w1) for ho, wo, h1, w1 in
+         _tower_sizes(h + pad[0], w + pad[1], out["conv_layers"])) < 1:
+    raise PolicyFormatError(f"policy image_size {h}x{w} is too small for its "
+                            f"{len(layers)} conv layers {out['conv_layers']}")
+  return out
+
+
+def _load_arg(value, name: str, zero: bool, what: str) -> float | None:
+  """A `load` argument: None, or a finite number > 0 (>= 0 with `zero`)."""
+  if value is None:
+    return None
+  try:
+    v = float(value)
+  except (TypeError, ValueError, OverflowError):
+    v = math.nan
+  if not (math.isfinite(v) and (v >= 0.0 if zero else v > 0.0)):
+    raise PolicyInputError(f"{name} {str(value)[:40]!r}: expected {what}")
+  return v
+
+
+def _array_names(layout: dict) -> list[str]:
+  """The arrays a policy of `layout` (`policy_layout`) computes with: what `load` reads."""
+  names = [f"tower/conv{i}" for i in range(len(layout["conv_layers"]))]
+  names += [f"dense{i}" for i in range(layout["num_hidden"])] + ["mean"]
+  return [f"{n}/{p}" for n in names for p in ("kernel", "bias")]
+
+
 class NumpyPolicy:
   """The actor's deterministic action, in numpy. Build with `NumpyPolicy.load(path)`."""
 
   def __init__(self, arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = False,
                invalid_depth: float | None = None, depth_scale: float | None = None,
                wrap_yaw: bool = False):
-    """Use `load` (its arguments). `arrays` maps "tower/conv0/kernel" etc. to float32
-    arrays."""
+    """Use `load` (its arguments). `arrays` maps "tower/conv0/kernel" etc. to floating-point
+    arrays, `meta` is the file's metadata (`policy_layout`). PolicyFormatError for bad or
+    inconsistent ones (shapes, NaN/inf weights), PolicyInputError for a bad argument."""
+    try:
+      self._build(arrays, meta, preprocess, invalid_depth, depth_scale, wrap_yaw)
+    except PolicyError:
+      raise
+    except Exception as e:  # noqa: BLE001 - only PolicyError leaves NumpyPolicy
+      raise PolicyFormatError(f"policy does not load ({type(e).__name__}: "
+                              f"{_first_line(e)})") from e
+
+  def _build(self, arrays, meta, preprocess, invalid_depth, depth_scale, wrap_yaw) -> None:
+    layout = policy_layout(meta)
     self.meta = meta
-    self.preprocess = preprocess
+    self.preprocess = bool(preprocess)
     self.wrap_yaw = bool(wrap_yaw)
     # metres per count of integer depth images (None: integer images are refused)
-    if depth_scale is not None:
-      depth_scale = float(depth_scale)
-      if not (math.isfinite(depth_scale) and depth_scale > 0.0):
-        raise PolicyInputError(f"depth_scale {depth_scale!r}: expected metres per count > 0 "
-                               "(0.001 for millimetres)")
-    self.depth_scale = depth_scale
-    try:
-      self.height, self.width = (int(v) for v in meta["image_size"])
-      self.max_depth = float(meta["max_depth_m"])
-      # what preprocessing puts where the sensor has no reading: by default the maximum
-      # range, as the simulator renders a ray that hits nothing
-      self.invalid_depth = self.max_depth if invalid_depth is None else float(invalid_depth)
-      # the network's input multiplier (1 / m, metadata "depth_scale"), not `depth_scale`
-      self.input_scale = float(meta.get("depth_scale", 1.0))
-      # largest depth accepted without preprocessing (m): the module's input contract
-      self.depth_limit = DEPTH_LIMIT_FACTOR * self.max_depth
-      self.low = np.asarray(meta["action_low"], np.float32)
-      self.high = np.asarray(meta["action_high"], np.float32)
-      layers = [(int(s), bool(p)) for s, p in meta["conv_layers"]]
-      # bottom / right edge padding of the tower (files written before it existed: none)
-      self.tower_pad = tuple(int(v) for v in meta.get("tower_pad", (0, 0)))
-      # the mean of the actions on the image and on its mirror (files before it: no)
-      self.mirror_average = bool(meta.get("mirror_average", False))
-      num_hidden = int(meta["num_hidden"])
-    except (KeyError, TypeError, ValueError) as e:
-      raise PolicyFormatError(f"policy metadata is incomplete or invalid: {e!r}") from None
-    need = [f"tower/conv{i}/{p}" for i in range(len(layers)) for p in ("kernel", "bias")]
-    need += [f"dense{i}/{p}" for i in range(num_hidden) for p in ("kernel", "bias")]
-    need += ["mean/kernel", "mean/bias"]
-    missing = [n for n in need if n not in arrays]
+    self.depth_scale = _load_arg(depth_scale, "depth_scale", False,
+                                 "metres per count > 0 (0.001 for millimetres)")
+    self.height, self.width = layout["image_size"]
+    self.max_depth = layout["max_depth_m"]
+    # what preprocessing puts where the sensor has no reading: by default the maximum
+    # range, as the simulator renders a ray that hits nothing
+    invalid_depth = _load_arg(invalid_depth, "invalid_depth", True,
+                              "metres >= 0 (None: max_depth_m)")
+    self.invalid_depth = self.max_depth if invalid_depth is None else invalid_depth
+    # the network's input multiplier (1 / m, metadata "depth_scale"), not `depth_scale`
+    self.input_scale = layout["depth_scale"]
+    # largest depth accepted without preprocessing (m): the module's input contract
+    self.depth_limit = DEPTH_LIMIT_FACTOR * self.max_depth
+    self.low, self.high = layout["action_low"], layout["action_high"]
+    layers = layout["conv_layers"]
+    # bottom / right edge padding of the tower (files written before it existed: none)
+    self.tower_pad = layout["tower_pad"]
+    # the mean of the actions on the image and on its mirror (files before it: no)
+    self.mirror_average = layout["mirror_average"]
+    self.control_dt = layout["control_dt"]  # s per decision, None if the file lacks it
+    num_hidden = layout["num_hidden"]
+    missing = [n for n in _array_names(layout) if n not in arrays]
     if missing:
       raise PolicyFormatError(f"policy file lacks arrays: {', '.join(missing)}")
-    f32 = lambda n: np.ascontiguousarray(arrays[n], np.float32)
 
-    def check(name, shape):
-      for suffix, want in (("kernel", shape), ("bias", shape[-1:])):
-        got = arrays[f"{name}/{suffix}"].shape
-        if got != want:
-          raise PolicyFormatError(f"{name}/{suffix} has shape {got}, expected {want}")
+    def outputs(name: str, ndim: int) -> int:  # a kernel's last axis, its rank checked
+      shape = np.shape(arrays[name])
+      if len(shape) != ndim or shape[-1] < 1:
+        raise PolicyFormatError(f"{name} has shape {shape}, expected {ndim} axes")
+      return int(shape[-1])
+
+    def weights(name: str, shape: tuple) -> np.ndarray:  # float32, shape and values checked
+      a = np.asarray(arrays[name])
+      if a.dtype.kind != "f":
+        raise PolicyFormatError(f"{name} of dtype {a.dtype}: expected floating point")
+      if a.shape != shape:
+        raise PolicyFormatError(f"{name} has shape {a.shape}, expected {shape}")
+      with np.errstate(over="ignore"):  # float64 beyond float32 becomes inf: refused below
+        a = np.ascontiguousarray(a, np.float32)
+      if not np.isfinite(a).all():
+        raise PolicyFormatError(f"{name} has {a.size - np.count_nonzero(np.isfinite(a))} "
+                                "NaN or inf weights (or beyond float32): a broken export")
+      return a
+
+    def layer(name: str, shape: tuple) -> tuple[np.ndarray, np.ndarray]:
+      return weights(f"{name}/kernel", shape), weights(f"{name}/bias", shape[-1:])
 
     self._convs, channels = [], 1
     for i, (stride, pool) in enumerate(layers):
-      features = arrays[f"tower/conv{i}/kernel"].shape[-1]
-      check(f"tower/conv{i}", (3, 3, channels, features))
-      k = f32(f"tower/conv{i}/kernel")
+      features = outputs(f"tower/conv{i}/kernel", 4)
+      k, b = layer(f"tower/conv{i}", (3, 3, channels, features))
       if i == 0:  # fold the input scaling into the first kernel
         k = k * np.float32(self.input_scale)
       # The bias is the last row: im2col buffers carry a column of ones.
-      kernel = np.concatenate([k.reshape(-1, features), f32(f"tower/conv{i}/bias")[None]])
+      kernel = np.concatenate([k.reshape(-1, features), b[None]])
+      if not np.isfinite(kernel).all():
+        raise PolicyFormatError("tower/conv0/kernel times depth_scale overflows float32")
       self._convs.append((np.ascontiguousarray(kernel), pool))
       channels = features
     self._layers = layers
     self._local = threading.local()  # per-thread buffers, keyed by input shape
-    self.state_size = arrays["dense0/kernel"].shape[0] - channels
-    if self.state_size <= 0:
-      raise PolicyFormatError("dense0/kernel is too small for the conv features")
+    self._work_bytes = self._workspace_bytes(1)
+    if self._work_bytes > MAX_IMAGE_WORK_BYTES:
+      raise PolicyFormatError(f"the conv tower needs {self._work_bytes} bytes of buffers per "
+                              f"image: at most {MAX_IMAGE_WORK_BYTES}")
+    outputs("dense0/kernel", 2)  # a matrix: its rows are the features and the state
+    self.state_size = int(np.shape(arrays["dense0/kernel"])[0]) - channels
+    if not 1 <= self.state_size <= MAX_STATE:
+      raise PolicyFormatError(f"dense0/kernel has {self.state_size + channels} inputs for "
+                              f"{channels} conv features: expected 1 to {MAX_STATE} more "
+                              "(the state)")
     width = channels + self.state_size
     self._dense = []
     for i in range(num_hidden):
-      hidden = arrays[f"dense{i}/kernel"].shape[-1]
-      check(f"dense{i}", (width, hidden))
-      self._dense.append((f32(f"dense{i}/kernel"), f32(f"dense{i}/bias")))
+      hidden = outputs(f"dense{i}/kernel", 2)
+      self._dense.append(layer(f"dense{i}", (width, hidden)))
       width = hidden
-    if self.low.ndim != 1 or self.low.shape != self.high.shape:
-      raise PolicyFormatError(f"bad action box {self.low.tolist()}..{self.high.tolist()}")
-    check("mean", (width, self.low.shape[0]))
-    self._mean = (f32("mean/kernel"), f32("mean/bias"))
+    self._mean = layer("mean", (width, self.low.shape[0]))
+    if self.mirror_average and (self.state_size, self.low.shape[0]) != (3, 2):
+      raise PolicyFormatError(f"mirror_average needs the state [v_prev, w_prev, yaw] and the "
+                              f"action [v, w]: this policy has {self.state_size} state and "
+                              f"{self.low.shape[0]} action entries")
+    self.layout = layout
     self._state_bounds()
+
+  def _workspace_bytes(self, batch: int) -> int:
+    """Bytes of the conv buffers (`_ConvWork`: cols and out) for `batch` images."""
+    sizes = _tower_sizes(self.height + self.tower_pad[0], self.width + self.tower_pad[1],
+                         self._layers)
+    return sum(4 * batch * ho * wo * (kernel.shape[0] + kernel.shape[1])
+               for (kernel, _), (ho, wo, _, _) in zip(self._convs, sizes))
 
   def _state_bounds(self) -> None:
     """The accepted range of each state entry (`state_lo`, `state_hi`, (S,) float32) from
     `state_layout`: the k-th "*_prev" entry is action k's box, widened by STATE_TOLERANCE
     of its width; "yaw" is [-pi, pi] +- YAW_TOLERANCE; any other entry: finite only."""
-    layout = self.meta.get("state_layout")
+    layout = self.layout["state_layout"]
     if not layout and self.state_size == 3 and self.low.shape[0] == 2:
       layout = ["v_prev", "w_prev", "yaw"]  # files before the key: the only layout there was
     layout = [str(n) for n in layout or []]
@@ -392,22 +711,40 @@ class NumpyPolicy:
     [-pi, pi) instead of refused.
     blas_threads: if given, `set_blas_threads(blas_threads)` (process-wide; 1 is best on
     a busy CPU); None leaves BLAS as it is.
+
+    Reads only `__meta__` and the arrays it names, each checked against the module's file
+    limits before it is unpacked. Raises PolicyError only: PolicyFormatError for the file,
+    PolicyInputError for a bad argument.
     """
-    arrays, meta = read_policy_file(path)
+    path = Path(path)
     try:
+      arrays, meta = _read_policy(path, lambda meta, names: _array_names(policy_layout(meta)))
       policy = cls(arrays, meta, preprocess, invalid_depth, depth_scale, wrap_yaw)
     except PolicyFormatError as e:
-      raise PolicyFormatError(f"{path}: {e}") from None
+      text = str(e)
+      raise PolicyFormatError(text if text.startswith(str(path)) else f"{path}: {text}") \
+          from None
     if blas_threads is not None:
-      set_blas_threads(blas_threads)
+      try:
+        threads = int(blas_threads)
+        if threads < 1:
+          raise ValueError(threads)
+        set_blas_threads(threads)
+      except Exception as e:  # noqa: BLE001 - a bad count, or threadpoolctl failing
+        raise PolicyInputError(f"blas_threads {str(blas_threads)[:20]!r}: expected a count "
+                               f">= 1 ({_first_line(e)})") from None
     return policy
 
   # --------------------------------------------------------------------------------------
 
   def _workspace(self, shape: tuple[int, ...]) -> list[_ConvWork]:
-    """The conv buffers for an input of `shape` (built on first use, per thread)."""
+    """The conv buffers for an input of `shape` (built on first use, per thread; each
+    thread keeps those of its last CACHED_SHAPES shapes)."""
     cache = self._local.__dict__.setdefault("works", {})
-    if shape not in cache:
+    works = cache.pop(shape, None)  # re-inserted below: the dict's order is last use
+    if works is None:
+      while len(cache) >= CACHED_SHAPES:  # the least recently used first
+        del cache[next(iter(cache))]
       works, (b, h, w, c) = [], shape
       for (kernel, _), (stride, pool) in zip(self._convs, self._layers):
         work = _ConvWork((b, h, w, c), kernel.shape[1], stride, pool)
@@ -415,10 +752,8 @@ class NumpyPolicy:
         h, w, c = work.ho, work.wo, kernel.shape[1]
         if pool:
           h, w = h // 2, w // 2
-      if len(cache) >= 4:
-        cache.clear()
-      cache[shape] = works
-    return cache[shape]
+    cache[shape] = works
+    return works
 
   def _check(self, depth, state, preprocess: bool,
              wrap_yaw: bool) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -460,7 +795,7 @@ class NumpyPolicy:
           state[:, yi] = np.where(outside, (yaw + math.pi) % (2 * math.pi) - math.pi, yaw)
     state = np.asarray(state, np.float32)
     if not np.isfinite(state).all():
-      raise PolicyInputError(f"state has NaN or inf values ({state.tolist()[:4]}): expected "
+      raise PolicyInputError(f"state has NaN or inf values ({state[:4].tolist()}): expected "
                              "finite numbers")
     if not ((state >= self.state_lo) & (state <= self.state_hi)).all():
       raise self._state_error(state)
@@ -545,54 +880,91 @@ class NumpyPolicy:
     to [0, max_depth] as the simulated sensor is. Returns a new float32 array. (It
     refuses nothing; a call with preprocess=True also refuses readings above
     SENSOR_DEPTH_LIMIT_M.)"""
-    return self._clean(depth, refuse=False)
+    return self._clean(_numbers(depth, "depth image", "metres"), refuse=False)
 
   def action(self, depth, state, preprocess: bool | None = None,
              wrap_yaw: bool | None = None) -> np.ndarray:
-    """The action array: (A,) for one input, (B, A) for a batch; float32 in the box.
-    preprocess, wrap_yaw: None is the policy's own (`load`). PolicyInputError for inputs
-    outside the module's input contract."""
+    """The action array: (A,) for one input, (B, A) for a batch; float32, finite, in the
+    box. preprocess, wrap_yaw: None is the policy's own (`load`). PolicyInputError for
+    inputs outside the module's input contract, PolicyError for a network output that is
+    not finite (an overflow); no other error (a MemoryError becomes a PolicyError too)."""
+    try:
+      return self._action(depth, state, preprocess, wrap_yaw)
+    except PolicyError:
+      raise
+    except Exception as e:  # noqa: BLE001 - whatever it is, the caller gets no action
+      raise PolicyError(f"no action ({type(e).__name__}: {_first_line(e)})") from e
+
+  def _action(self, depth, state, preprocess: bool | None,
+              wrap_yaw: bool | None) -> np.ndarray:
     pre = self.preprocess if preprocess is None else preprocess
     wrap = self.wrap_yaw if wrap_yaw is None else wrap_yaw
     x, s, batched = self._check(depth, state, pre, wrap)
-    if self.mirror_average:  # one batch of the inputs and their mirror images
-      b = x.shape[0]
-      act = self._actor(np.concatenate([x, x[:, :, ::-1]]),
-                        np.concatenate([s, s * MIRROR_STATE_SIGN]))
-      act = 0.5 * (act[:b] + act[b:] * MIRROR_ACTION_SIGN)
-    else:
-      act = self._actor(x, s)
+    n = x.shape[0]
+    mirror = self.mirror_average
+    # chunks of at most WORKSPACE_BYTES of conv buffers: a large batch holds no more
+    step = max(1, WORKSPACE_BYTES // ((2 if mirror else 1) * self._work_bytes))
+    act = np.empty((n, self.low.shape[0]), np.float32)
+    for i in range(0, n, step):
+      xi, si = x[i:i + step], s[i:i + step]
+      if mirror:  # one batch of the inputs and their mirror images
+        b = xi.shape[0]
+        both = self._actor(np.concatenate([xi, xi[:, :, ::-1]]),
+                           np.concatenate([si, si * MIRROR_STATE_SIGN]))
+        act[i:i + b] = 0.5 * (both[:b] + both[b:] * MIRROR_ACTION_SIGN)
+      else:
+        act[i:i + step] = self._actor(xi, si)
+    # float32 rounding, and the mirror average of a box not symmetric in w, may leave it
+    np.clip(act, self.low, self.high, out=act)
     return act if batched else act[0]
 
   def _actor(self, x: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """The actor's action (B, A) for checked inputs: depth (B, H, W, 1), state (B, S)."""
+    """The actor's action (B, A) for checked inputs: depth (B, H, W, 1), state (B, S);
+    PolicyError if the features or the output are not finite (finite weights and inputs:
+    an overflow)."""
     if any(self.tower_pad):  # repeat the last rows / columns, as the tower was trained
       x = np.pad(x, ((0, 0), (0, self.tower_pad[0]), (0, self.tower_pad[1]), (0, 0)), "edge")
-    for (kernel, pool), work in zip(self._convs, self._workspace(x.shape)):
-      x = work(x, kernel)
-      if pool:  # max pool commutes with ReLU: apply it to 4x fewer values
-        x = _maxpool2(x)
-      np.maximum(x, 0.0, out=x)
-    h = np.concatenate([x.mean(axis=(1, 2)), s], axis=-1)
-    for kernel, bias in self._dense:
-      h = h @ kernel
-      h += bias
-      np.maximum(h, 0.0, out=h)
-    mean = h @ self._mean[0] + self._mean[1]
+    with np.errstate(over="ignore", invalid="ignore"):  # checked below, once
+      for (kernel, pool), work in zip(self._convs, self._workspace(x.shape)):
+        x = work(x, kernel)
+        if pool:  # max pool commutes with ReLU: apply it to 4x fewer values
+          x = _maxpool2(x)
+        np.maximum(x, 0.0, out=x)
+      h = features = np.concatenate([x.mean(axis=(1, 2)), s], axis=-1)
+      for kernel, bias in self._dense:
+        h = h @ kernel
+        h += bias
+        np.maximum(h, 0.0, out=h)
+      mean = h @ self._mean[0] + self._mean[1]
+    if not (np.isfinite(features).all() and np.isfinite(mean).all()):
+      raise PolicyError("the network's output is not finite for a finite input (an "
+                        "overflow: weights too large for it?): no action")
     return self.low + 0.5 * (np.tanh(mean) + 1.0) * (self.high - self.low)
 
   def yaw_input(self, imu_yaw: float, start_yaw: float | None = None) -> float:
     """The state's yaw (rad, in [-pi, pi)) from the IMU yaw (rad) as the policy was
     trained: relative to `start_yaw`, the IMU yaw at the row entrance with the robot facing
     down the row (metadata `yaw_reference` "start"), or the IMU yaw plus `yaw_offset_deg`
-    ("world", the paper's input; also files exported before the key existed)."""
-    if self.meta.get("yaw_reference", "world") == "start":
+    ("world", the paper's input; also files exported before the key existed; files of
+    mjxvine 0.2.0 may carry an offset). PolicyInputError for a yaw that is not a finite
+    number."""
+    def angle(v, name: str) -> float:
+      try:
+        v = float(v)
+      except (TypeError, ValueError, OverflowError):
+        v = math.nan
+      if not math.isfinite(v):
+        raise PolicyInputError(f"{name} {v!r}: expected a finite angle in rad")
+      return v
+
+    imu_yaw = angle(imu_yaw, "imu_yaw")
+    if self.layout["yaw_reference"] == "start":
       if start_yaw is None:
         raise PolicyInputError("this policy reads the yaw relative to the row entrance: "
                                "give start_yaw, the IMU yaw there")
-      yaw = imu_yaw - start_yaw
+      yaw = imu_yaw - angle(start_yaw, "start_yaw")
     else:
-      yaw = imu_yaw + math.radians(float(self.meta.get("yaw_offset_deg", 0.0)))
+      yaw = imu_yaw + math.radians(self.layout["yaw_offset_deg"])
     return (yaw + math.pi) % (2 * math.pi) - math.pi
 
   def __call__(self, depth, state, preprocess: bool | None = None,

@@ -12,10 +12,10 @@ Two orders, higher is better:
     would win at any offset.
 
 The validation protocol: every lane-direction of `train.select_worlds` test-kind worlds of
-seeds `train.select_world_seed` and up, `train.select_runs` runs each, at
-`eval.noise_factor`; and the noise test's rows (`paper.NOISE_LANES`, `paper.NOISE_RUNS`
-runs) of the first validation world at each of `train.select_noise_factors`. One batched
-rollout per candidate, rollout seed 0: the same cases and keys for every candidate.
+seeds `FIRST_WORLD_SEED` and up, `RUNS` runs each, at `eval.noise_factor`; and the noise
+test's rows (`paper.NOISE_LANES`, `paper.NOISE_RUNS` runs) of the first validation world
+at each of `NOISE_FACTORS`. One batched rollout per candidate, rollout seed 0: the same
+cases and keys for every candidate.
 """
 
 from __future__ import annotations
@@ -30,9 +30,14 @@ from mjxvine.atomic import write_bytes, write_text
 from mjxvine.config import Config
 from mjxvine.evaluation import paper
 from mjxvine.evaluation.metrics import summarize
-from mjxvine.evaluation.rollout import Cases, all_lanes, rollout_cases
+from mjxvine.evaluation.rollout import Cases, PolicySource, all_lanes, rollout_cases
 from mjxvine.formatting import fmt
 from mjxvine.rundir.checkpoints import selection_files
+
+FIRST_WORLD_SEED = 100  # validation worlds: test-kind seeds 100 and up (test tables: below)
+RUNS = 2  # runs per lane-direction of a validation world
+NOISE_FACTORS = (8.0, 10.0)  # the noise test's factors on the first validation world
+SUCCESS_BAR = 0.95  # the share of runs a candidate must drive to rank by its offset
 
 
 # ---------------------------------------------------------------------------- ranking rules
@@ -111,10 +116,10 @@ def candidates(evaluations: dict[int, dict], kept: set[int], k: int) -> list[int
 
 # ---------------------------------------------------------------------------- validation
 def validation_worlds(cfg: Config) -> list:
-  """The `train.select_worlds` validation worlds (test-kind, seeds select_world_seed...)."""
+  """The `train.select_worlds` validation worlds (test-kind, seeds `FIRST_WORLD_SEED`...)."""
   from mjxvine.worlds import make_world
-  first = cfg.train.select_world_seed
-  return [make_world(str(first + i), cfg.world) for i in range(cfg.train.select_worlds)]
+  return [make_world(str(FIRST_WORLD_SEED + i), cfg.world)
+          for i in range(cfg.train.select_worlds)]
 
 
 def validation_cases(worlds: list, runs: int, noise0: float, noise_factors) -> tuple:
@@ -135,7 +140,7 @@ def score_policy(cfg: Config, path: Path, worlds: list, runs: int,
   "success", "episodes" (over all of it), "mae_m" (the mean of the worlds' mean-of-rows
   MAE; None when no world has one), "wall_s"}."""
   cases, tables, noise = validation_cases(worlds, runs, cfg.eval.noise_factor, noise_factors)
-  raw, _ = rollout_cases(cfg, str(path), worlds, cases)
+  raw, _ = rollout_cases(cfg, PolicySource(str(path)), worlds, cases)
   out = {"worlds": {}, "noise": {}}
   for world, idx in zip(worlds, tables):
     doc = summarize(cfg, world, cases, idx, raw)
@@ -161,9 +166,9 @@ def protocol(cfg: Config) -> dict:
   """What the validation scores depend on besides the policy: a selection.json with other
   values is scored again."""
   t = cfg.train
-  return {"worlds": [t.select_world_seed + i for i in range(t.select_worlds)],
-          "runs": t.select_runs, "noise_factor": cfg.eval.noise_factor,
-          "noise_factors": list(t.select_noise_factors),
+  return {"worlds": [FIRST_WORLD_SEED + i for i in range(t.select_worlds)],
+          "runs": RUNS, "noise_factor": cfg.eval.noise_factor,
+          "noise_factors": list(NOISE_FACTORS),
           "noise_lanes": list(paper.NOISE_LANES), "noise_runs": paper.NOISE_RUNS,
           "max_steps": cfg.eval.max_steps, "rollout_seed": 0}
 
@@ -194,16 +199,14 @@ def select(cfg: Config, run_dir: Path, say=print, member: int | None = None) -> 
   record = {"protocol": protocol(cfg), "candidates": [], "selected": None}
   done = ({c["env_steps"]: c["validation"] for c in old.get("candidates", [])}
           if old.get("protocol") == record["protocol"] else {})
-  selected_path.unlink(missing_ok=True)  # an earlier choice, until this one
   worlds = validation_worlds(cfg)
   who = "" if member is None else f"member {member}: "
   say(f"{who}choosing the best of {len(chosen)} evaluated policies "
       f"({', '.join(map(str, chosen))} env steps) on validation worlds "
       f"{record['protocol']['worlds']}...")
-  bar = cfg.train.select_success_bar
+  bar = SUCCESS_BAR
   for steps in chosen:
-    scores = done.get(steps) or score_policy(cfg, kept[steps], worlds, cfg.train.select_runs,
-                                             cfg.train.select_noise_factors)
+    scores = done.get(steps) or score_policy(cfg, kept[steps], worlds, RUNS, NOISE_FACTORS)
     record["candidates"].append({"env_steps": steps, "trainer": evaluations[steps],
                                  "validation": scores})
     write_text(record_path, json.dumps(record, indent=1))  # resumable after each candidate
@@ -211,6 +214,7 @@ def select(cfg: Config, run_dir: Path, say=print, member: int | None = None) -> 
     say(f"  {steps:>8} env steps: {summary(scores)}{meets}")
   best = max(record["candidates"], key=lambda c: rank(c["validation"], bar))  # first of equals
   record["selected"] = best["env_steps"]
+  # over an earlier choice, whole: it stays until this one is ready (a stop keeps it)
   write_bytes(selected_path, kept[best["env_steps"]].read_bytes())
   write_text(record_path, json.dumps(record, indent=1))
   say(f"{who}selected the policy of {best['env_steps']} env steps: {selected_path}")

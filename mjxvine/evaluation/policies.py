@@ -37,7 +37,7 @@ def load_policy(spec: str, env, which: str = "best",
   """`oracle`, `random`, a run directory / checkpoint, or an exported `.npz` actor, for
   `env` (a `VineyardEnv`): (policy, its name).
   which: the checkpoint of a run directory, "best" or "last" (`checkpoint_item`);
-  member: of a `--seeds` / sweep run, which one (None: the one checkpoints/best follows)."""
+  member: of a `--num-seeds` / sweep run, which one (None: the one checkpoints/best follows)."""
   if spec == "oracle":
     from mjxvine.env import pure_pursuit  # (the env's imports are heavy: only when needed)
     return pure_pursuit(env), "oracle (pure pursuit, privileged pose)"

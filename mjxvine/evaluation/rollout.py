@@ -1,7 +1,8 @@
 """Batched rollouts from the lanes' starts: the evaluator's stepping (`protocol_steps`,
 `rollout`; `drive` steps one env the same way, for the live viewer), the rollout cases
-(`Cases`: which world, lane, direction and noise factor each episode drives), and the
-paper's protocol on one test world (`run_protocol`, `evaluate`).
+(`Cases`: which world, lane, direction and noise factor each episode drives; `PolicySource`:
+which policy drives them), and the paper's protocol on one test world (`Protocol`,
+`run_protocol`, `evaluate`).
 
 The protocol: every lane of the world x {forward, reverse} x `runs` runs, all batched in
 one rollout, with the policy's deterministic action. Runs differ by the depth noise.
@@ -12,7 +13,7 @@ lanes and directions +1/-1.
 from __future__ import annotations
 
 import time
-from typing import Iterator, Sequence
+from typing import Iterator, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jp
@@ -78,25 +79,34 @@ def protocol_steps(env, policy: Policy, b: int, record: Sequence[int] = ()):
   return jax.jit(reset), body, frames
 
 
-def rollout(env, policy: Policy, lanes, directions, key, max_steps: int,
-            worlds=None, noise=None, record: Sequence[int] = ()):
-  """Runs one episode per (lane, direction) pair from the lane's start, batched.
+class EnvStarts(NamedTuple):
+  """Where each of the B episodes of a `rollout` starts, in the env's terms: sequences of
+  length B of lanes (0-based) and directions (+1 / -1), and optionally worlds (indices
+  into the env's worlds; None: 0) and noise (each episode's depth noise factor; None: the
+  env's)."""
+  lanes: Sequence[int]
+  directions: Sequence[float]
+  worlds: Sequence[int] | None = None
+  noise: Sequence[float] | None = None
 
-  lanes (0-based), directions (+1 / -1), and optionally worlds (indices into `env`'s
-  worlds; default 0) and noise (the depth noise factor of each episode; default the
-  env's): sequences of length B.
+
+def rollout(env, policy: Policy, starts: EnvStarts, key, max_steps: int,
+            record: Sequence[int] = ()):
+  """Runs one episode per start of `starts` (`EnvStarts`, B of them) from its lane's
+  start, batched.
+
   Returns numpy arrays over time T and envs B: xy (T, B, 2), action (T, B, 2),
   alive (T, B) (step taken before the episode ended, inclusive), outcome (B,), steps (B,),
   and for the envs `record` (R of them, for videos) the frames from the start on:
   {"qpos": (T + 1, R, nq), "depth": (T + 1, R, H, W) float16 m, the image the policy saw}
   ({} when none are recorded).
   """
-  b = len(lanes)
+  b = len(starts.lanes)
   k_reset, k_run = jax.random.split(key)
   reset, body, frames = protocol_steps(env, policy, b, record)
-  carry = reset(k_reset, jp.asarray(lanes), jp.asarray(directions, jp.float32),
-                None if worlds is None else jp.asarray(worlds, jp.int32),
-                None if noise is None else jp.asarray(noise, jp.float32))
+  carry = reset(k_reset, jp.asarray(starts.lanes), jp.asarray(starts.directions, jp.float32),
+                None if starts.worlds is None else jp.asarray(starts.worlds, jp.int32),
+                None if starts.noise is None else jp.asarray(starts.noise, jp.float32))
   state = carry[0]
 
   scan = jax.jit(lambda c, k: jax.lax.scan(body, c, jax.random.split(k, CHUNK_STEPS)))
@@ -198,51 +208,71 @@ class Cases(list):
     return range(first, len(self))
 
 
-def rollout_cases(cfg: Config, policy_spec: str, worlds: list, cases, *,
-                  seed: int = 0, policy: Policy | None = None, which: str = "best",
-                  member: int | None = None, record: Sequence[int] = ()):
+class PolicySource(NamedTuple):
+  """Which policy drives: `spec` (oracle, random, a run dir or an .npz, loaded by
+  `policies.load_policy`) with, of a run dir, its checkpoint `which` ("best" or "last")
+  and `member` (of a run that trained several; None: the one checkpoints/best follows);
+  or `policy`, built already, which `spec` then only names."""
+  spec: str
+  which: str = "best"
+  member: int | None = None
+  policy: Policy | None = None
+
+
+def rollout_cases(cfg: Config, source: PolicySource, worlds: list, cases, *,
+                  seed: int = 0, record: Sequence[int] = ()):
   """One batched rollout of every case: (world index, lane (1-based), direction "F"/"R",
-  noise factor) tuples over `worlds` (`Vineyard`s; see `Cases`). Returns (raw, policy
-  name) with raw = dict of the `rollout` arrays (xy, act, alive, outcome, steps, frames of
-  the cases `record`) and wall_s (s)."""
+  noise factor) tuples over `worlds` (`Vineyard`s; see `Cases`), driven by the policy of
+  `source` with rollout key `seed`. Returns (raw, policy name) with raw = dict of the
+  `rollout` arrays (xy, act, alive, outcome, steps, frames of the cases `record`) and
+  wall_s (s)."""
   from mjxvine.env import VineyardEnv  # (the env's imports are heavy: only when needed)
   # the protocol's episode limits (`lane_steps`, applied by the env per lane), whatever
   # the training episodes were
   limits = [lane_steps(cfg, worlds[w], lane) for w, lane, _, _ in cases]
   cfg = replace(cfg, env={"max_steps": cfg.eval.max_steps})
   env = VineyardEnv(cfg, list(worlds))
-  name = policy_spec
+  policy, name = source.policy, source.spec
   if policy is None:
-    policy, name = load_policy(policy_spec, env, which, member)
+    policy, name = load_policy(source.spec, env, source.which, source.member)
+  starts = EnvStarts([l - 1 for _, l, _, _ in cases],
+                     [1.0 if d == "F" else -1.0 for _, _, d, _ in cases],
+                     [w for w, _, _, _ in cases], [n for _, _, _, n in cases])
   t0 = time.time()
   xy, act, alive, outcome, steps, frames = rollout(
-      env, policy, [l - 1 for _, l, _, _ in cases], [1.0 if d == "F" else -1.0
-                                                     for _, _, d, _ in cases],
-      jax.random.PRNGKey(seed), max(limits), worlds=[w for w, _, _, _ in cases],
-      noise=[n for _, _, _, n in cases], record=record)
+      env, policy, starts, jax.random.PRNGKey(seed), max(limits), record=record)
   raw = dict(xy=xy, act=act, alive=alive, outcome=outcome, steps=steps, frames=frames,
              wall_s=time.time() - t0)
   return raw, name
 
 
 # ---------------------------------------------------------------------------- the protocol
-def run_protocol(cfg: Config, policy_spec: str, world, *, runs: int,
-                 noise_factor: float, lanes=None, directions=DIRECTIONS, seed: int = 0,
-                 policy: Policy | None = None, which: str = "best", member: int | None = None,
+class Protocol(NamedTuple):
+  """The protocol's settings on one world: `runs` runs (>= 1) of each lane (1-based; None:
+  all of them) in each direction ("F"/"R"), at depth noise factor `noise_factor` (>= 0),
+  with rollout key `seed`."""
+  runs: int
+  noise_factor: float
+  lanes: Sequence[int] | None = None
+  directions: Sequence[str] = DIRECTIONS
+  seed: int = 0
+
+
+def run_protocol(cfg: Config, source: PolicySource, world, protocol: Protocol, *,
                  video: Sequence[tuple[int, str]] = ()) -> tuple[dict, list]:
   """`evaluate`, and the `video.Track` of the first run of each lane-direction in `video`
   ((lane, "F"|"R") pairs): (results document, tracks)."""
+  runs, noise_factor, lanes = protocol.runs, protocol.noise_factor, protocol.lanes
   if runs < 1:
     raise ValueError(f"runs={runs}: need at least 1 run per lane and direction")
   if noise_factor < 0:
     raise ValueError(f"noise factor {noise_factor}: must be >= 0")
   lanes = list(range(1, len(world.lanes) + 1)) if lanes is None else list(lanes)
   cases = Cases()
-  cases.add(0, [(l, d) for l in lanes for d in directions], noise_factor, runs)
+  cases.add(0, [(l, d) for l in lanes for d in protocol.directions], noise_factor, runs)
   record = [cases.index((0, l, d, noise_factor)) for l, d in video
             if (0, l, d, noise_factor) in cases]
-  raw, name = rollout_cases(cfg, policy_spec, [world], cases, seed=seed, policy=policy,
-                            which=which, member=member, record=record)
+  raw, name = rollout_cases(cfg, source, [world], cases, seed=protocol.seed, record=record)
   frames = raw["frames"]
   tracks = [_track(cfg, world, cases[i][1:3], frames["qpos"][:, j], frames["depth"][:, j],
                    raw["act"][:, i], int(raw["steps"][i]), OUTCOMES[int(raw["outcome"][i])])
@@ -251,17 +281,11 @@ def run_protocol(cfg: Config, policy_spec: str, world, *, runs: int,
   return {"policy": name, "noise": noise_factor, **doc}, tracks
 
 
-def evaluate(cfg: Config, policy_spec: str, world, *, runs: int,
-             noise_factor: float, lanes=None, directions=DIRECTIONS, seed: int = 0,
-             policy: Policy | None = None, which: str = "best",
-             member: int | None = None) -> dict:
-  """Runs the protocol on `world` (a `Vineyard`) and returns the results document
-  (docs/evaluation.md). lanes: 1-based (default all); which: the checkpoint of a run
-  directory given as `policy_spec`, "best" or "last"; member: of a run that trained
-  several, which one (None: the one checkpoints/best follows)."""
-  return run_protocol(cfg, policy_spec, world, runs=runs, noise_factor=noise_factor,
-                      lanes=lanes, directions=directions, seed=seed, policy=policy,
-                      which=which, member=member)[0]
+def evaluate(cfg: Config, source: PolicySource, world, protocol: Protocol) -> dict:
+  """Runs the protocol (`Protocol`: runs, noise factor, lanes, directions, seed) on `world`
+  (a `Vineyard`) with the policy of `source` (`PolicySource`: spec, checkpoint, member)
+  and returns the results document (docs/evaluation.md)."""
+  return run_protocol(cfg, source, world, protocol)[0]
 
 
 def _track(cfg: Config, world, case: tuple[int, str], qpos, depth, action, steps: int,

@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
 from mjxvine import atomic
 from mjxvine.config import replace
 from mjxvine.evaluation.report import metric_cell
-from mjxvine.evaluation.rollout import evaluate
+from mjxvine.evaluation.rollout import PolicySource, Protocol, evaluate
 from mjxvine.formatting import fmt
 
 LENGTH_M = 80.0
@@ -34,20 +35,28 @@ def grid_config(cfg, length_m: float, inter_row_m: float, slope_pct: float):
                              "slope_pct": float(slope_pct)})
 
 
-def sweep_rows(cfg, policy_spec: str, out: Path, *, length_m: float = LENGTH_M,
-               inter_row_m=INTER_ROW_M, slope_pct=SLOPE_PCT, runs: int = 1, seed: int = 0,
-               which: str = "best", member=None, say=print) -> dict:
-  """The grid's results: {"<inter-row>m_<slope>pct": overall figures (`metrics.summarize`'s
-  "overall", with `rows_status`)}, also written to `out`."""
-  from mjxvine.worlds import generate_world
+class RowGrid(NamedTuple):
+  """The sweep's grid of test worlds: rows `length_m` (m) long, each of `inter_row_m` (m)
+  apart on each of `slope_pct` (%, along the rows)."""
+  length_m: float = LENGTH_M
+  inter_row_m: Sequence[float] = INTER_ROW_M
+  slope_pct: Sequence[float] = SLOPE_PCT
+
+
+def sweep_rows(cfg, source: PolicySource, out: Path, *, grid: RowGrid = RowGrid(),
+               runs: int = 1, seed: int = 0, say=print) -> dict:
+  """The grid's results, the policy of `source` driving `runs` runs of each lane-direction
+  (rollout key `seed`) of each world of `grid`: {"<inter-row>m_<slope>pct": overall
+  figures (`metrics.summarize`'s "overall", with `rows_status`)}, also written to `out`."""
+  from mjxvine.worlds import TEST_WORLD_SEED, generate_world
   table = {}
-  for gap in inter_row_m:
-    for slope in slope_pct:
+  length_m = grid.length_m
+  for gap in grid.inter_row_m:
+    for slope in grid.slope_pct:
       grid_cfg = grid_config(cfg, length_m, gap, slope)
-      world = generate_world("test", grid_cfg.world.test_seed, grid_cfg.world)
-      doc = evaluate(grid_cfg, policy_spec, world, runs=runs,
-                     noise_factor=grid_cfg.eval.noise_factor, seed=seed, which=which,
-                     member=member)
+      world = generate_world("test", TEST_WORLD_SEED, grid_cfg.world)
+      doc = evaluate(grid_cfg, source, world,
+                     Protocol(runs, grid_cfg.eval.noise_factor, seed=seed))
       o = doc["overall"]
       table[f"{gap:g}m_{slope:g}pct"] = dict(
           inter_row_m=gap, slope_pct=slope, length_m=length_m, success=o["success"],
@@ -58,7 +67,7 @@ def sweep_rows(cfg, policy_spec: str, out: Path, *, length_m: float = LENGTH_M,
       say(f"rows {length_m:g} m, {gap:g} m apart, slope {slope:g} %: "
           f"{o['success']}/{o['runs']} to the end of the row, MAE {fmt(o['mae_m_rows'], 3)} m")
   out.mkdir(parents=True, exist_ok=True)
-  atomic.write_text(out / "rows.md", rows_markdown(table, policy_spec, runs))
+  atomic.write_text(out / "rows.md", rows_markdown(table, source.spec, runs))
   atomic.write_text(out / "rows.json", json.dumps(table, indent=1))
   _plot(table, out / "rows.png")
   return table

@@ -24,7 +24,7 @@ CHECK_EVERY = 10  # steps between host checks whether every episode has ended
 ACTOR, STRAIGHT, RANDOM = 0, 1, 2
 BASELINES = {"straight": STRAIGHT, "random": RANDOM}
 # The start points' range (fractions of the row length from the lane's start) of every
-# evaluation, whatever `env.start_along` the run trains from: one yardstick for all runs.
+# evaluation (training draws from the same range, `env.START_ALONG`): one yardstick.
 EVAL_START_ALONG = (0.0, 0.6)
 
 

@@ -3,8 +3,8 @@
   python -m mjxvine.evaluate --policy models/jackal.npz --suite paper --out out/paper
 
   * the test-world table (the paper's protocol: 5 lanes x 2 directions x 5 runs) on test
-    world 0, the paper's vineyard, and the same table on test worlds 1, 2 and 3, drawn by
-    the same generator and never used in training (`paper.SUITE_WORLDS`);
+    world 0 (this generator's seed 0, laid out as the paper's test vineyard), and the same
+    table on test worlds 1, 2 and 3, drawn by the same generator and never used in training (`paper.SUITE_WORLDS`);
   * the noise test: lanes 1F (straight) and 4F (curved) of world 0, 3 runs each, depth
     noise factors 1, 2, 4, 6, 8 and 10 (`paper.NOISE_FACTORS`);
   * the robot test: the policy on the Husky, lanes 1F and 4F of world 0, 3 runs each,
@@ -25,7 +25,7 @@ from mjxvine.config import Config, replace
 from mjxvine.evaluation import paper
 from mjxvine.evaluation.metrics import summarize
 from mjxvine.evaluation.report import metric_cell, write_results
-from mjxvine.evaluation.rollout import Cases, all_lanes, rollout_cases
+from mjxvine.evaluation.rollout import Cases, PolicySource, all_lanes, rollout_cases
 from mjxvine.formatting import fmt
 from mjxvine.worlds import make_world
 
@@ -43,8 +43,8 @@ def paper_suite(cfg: Config, policy_spec: str, out: Path, *, runs: int = paper.R
   noise = {k: cases.add(0, paper.noise_rows(), float(k), paper.NOISE_RUNS)
            for k in paper.NOISE_FACTORS}
   jackal = cases.add(0, paper.robot_rows(), noise0, paper.ROBOT_RUNS)
-  raw, name = rollout_cases(cfg, policy_spec, tests, cases, seed=seed, which=which,
-                            member=member)
+  source = PolicySource(policy_spec, which, member)
+  raw, name = rollout_cases(cfg, source, tests, cases, seed=seed)
 
   report = {"policy": name, "seed": seed, "runs": runs, "worlds": {}, "noise": {},
             "robots": {}, "wall_s": raw["wall_s"]}
@@ -63,8 +63,7 @@ def paper_suite(cfg: Config, policy_spec: str, out: Path, *, runs: int = paper.R
     other = replace(cfg, robot={"name": robot})
     r_cases = Cases()
     r_cases.add(0, paper.robot_rows(), noise0, paper.ROBOT_RUNS)
-    r_raw, _ = rollout_cases(other, policy_spec, tests[:1], r_cases, seed=seed, which=which,
-                             member=member)
+    r_raw, _ = rollout_cases(other, source, tests[:1], r_cases, seed=seed)
     report["wall_s"] += r_raw["wall_s"]
     docs[robot] = summarize(other, tests[0], r_cases, range(len(r_cases)), r_raw)
   for robot, doc in docs.items():
@@ -94,8 +93,8 @@ def _summary_table(report: dict, worlds) -> list[str]:
   """The report's title, what it is, and one line per test world beside the paper's."""
   lines = [f"# The paper's evaluation: {report['policy']}", "",
            f"Deterministic action, {report['runs']} runs per lane-direction on each test "
-           f"world, rollout seed {report['seed']}; test world 0 is the paper's vineyard, "
-           "1-3 are drawn by the same generator. MAE/RMSE: the mean of the ten rows (the "
+           f"world, rollout seed {report['seed']}; test world 0 is the generator's seed 0 "
+           "(the paper's figures come from its own simulator), 1-3 are its seeds 1-3. MAE/RMSE: the mean of the ten rows (the "
            "paper's overall figure), \"(partial)\" when some runs of a row stopped before "
            "the end of the row.", "",
            "| test world | success | lane-directions below 4/5 | MAE m | RMSE m |",
@@ -152,7 +151,7 @@ def _robot_table(report: dict) -> list[str]:
 def _world_table(report: dict, w: int) -> list[str]:
   """Test world `w`'s rows (and, for world 0, the paper's figures beside them)."""
   doc = report["worlds"][str(w)]
-  lines = ["", f"## Test world {w}" + (" (the paper's)" if w == 0 else ""), "",
+  lines = ["", f"## Test world {w}", "",
            f"![trajectories](world{w}/trajectories.png)", "",
            "| row | shape | success | lane covered | MAE m | RMSE m | v m/s | w rad/s |"
            + (" paper: success, MAE, RMSE |" if w == 0 else ""),

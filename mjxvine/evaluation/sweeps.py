@@ -13,7 +13,7 @@ from mjxvine import atomic
 from mjxvine.config import replace
 from mjxvine.evaluation import paper
 from mjxvine.evaluation.report import metric_cell
-from mjxvine.evaluation.rollout import evaluate
+from mjxvine.evaluation.rollout import PolicySource, Protocol, evaluate
 from mjxvine.formatting import fmt
 
 
@@ -23,9 +23,9 @@ def sweep_noise(cfg, policy_spec, world, out: Path, seed=0, which="best", member
   Returns {noise factor: {"1F": row, "4F": row}} (`metrics.summarize` rows)."""
   table = {}
   for k in sorted(paper.PAPER_NOISE):
-    doc = evaluate(cfg, policy_spec, world, runs=paper.NOISE_RUNS, noise_factor=float(k),
-                   lanes=paper.NOISE_LANES, directions=(paper.NOISE_DIRECTION,), seed=seed,
-                   which=which, member=member)
+    doc = evaluate(cfg, PolicySource(policy_spec, which, member), world,
+                   Protocol(paper.NOISE_RUNS, float(k), paper.NOISE_LANES,
+                            (paper.NOISE_DIRECTION,), seed))
     table[k] = {f"{r['lane']}{r['direction']}": r for r in doc["rows"]}
   runs = paper.NOISE_RUNS
   rows = ", ".join(f"{lane}{paper.NOISE_DIRECTION} {shape}"
@@ -70,10 +70,9 @@ def sweep_robots(cfg, policy_spec, world, out: Path, seed=0, which="best", membe
   runs each, of `world` at the config's noise. Returns {(robot, "1F"): row, ...}."""
   table = {}
   for robot in paper.ROBOTS:
-    doc = evaluate(replace(cfg, robot={"name": robot}), policy_spec, world,
-                   runs=paper.ROBOT_RUNS, noise_factor=cfg.eval.noise_factor,
-                   lanes=paper.ROBOT_LANES, directions=(paper.ROBOT_DIRECTION,), seed=seed,
-                   which=which, member=member)
+    doc = evaluate(replace(cfg, robot={"name": robot}), PolicySource(policy_spec, which, member),
+                   world, Protocol(paper.ROBOT_RUNS, cfg.eval.noise_factor, paper.ROBOT_LANES,
+                                   (paper.ROBOT_DIRECTION,), seed))
     for r in doc["rows"]:
       table[(robot, f"{r['lane']}{r['direction']}")] = r
   runs = paper.ROBOT_RUNS

@@ -26,7 +26,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, NamedTuple
 
 import numpy as np
 
@@ -344,19 +344,28 @@ def video_after_train(world) -> list[tuple[int, str]]:
   return [(1, "F"), (min(4, len(world.lanes)), "R")]
 
 
-def write_videos(tracks, world, cfg, out: Path, *, mp4: bool = True, gif: bool = False,
-                 fps: float | None = None, size=(480, 360), say=print) -> list[Path]:
+class VideoFormat(NamedTuple):
+  """The files `write_videos` writes: an MP4 and/or a GIF per run, `fps` frames per second
+  (None: twice real time), frames `size` = (width, height) px."""
+  mp4: bool = True
+  gif: bool = False
+  fps: float | None = None
+  size: tuple[int, int] = (480, 360)
+
+
+def write_videos(tracks, world, cfg, out: Path, form: VideoFormat = VideoFormat(), *,
+                 say=print) -> list[Path]:
   """Renders each `Track` of `world` (a `Vineyard`; `cfg` its `Config`) to
-  out/<lane><dir>.mp4 (and .gif); returns the files written. fps: frames per second of the
-  file (default: twice real time); size: (width, height) px."""
+  out/<lane><dir>.mp4 (and .gif), as `form` says; returns the files written."""
   from mjxvine.worlds import build_models
   model = build_models([world], cfg)[0]
-  fps = 2.0 / cfg.env.control_dt if fps is None else fps
+  fps = 2.0 / cfg.env.control_dt if form.fps is None else form.fps
   written = []
   for track in tracks:
     t0 = time.time()
-    paths = {k: out / f"{track.label}.{k}" for k, on in (("mp4", mp4), ("gif", gif)) if on}
-    n = write_video(render_frames(model, track, *size), fps=fps, **paths)
+    paths = {k: out / f"{track.label}.{k}" for k, on in (("mp4", form.mp4), ("gif", form.gif))
+             if on}
+    n = write_video(render_frames(model, track, *form.size), fps=fps, **paths)
     written += list(paths.values())
     say(f"  {' and '.join(str(p) for p in paths.values())}: {n} frames ({track.outcome}) "
         f"in {time.time() - t0:.0f} s")

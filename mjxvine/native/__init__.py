@@ -23,7 +23,7 @@ same for the two builds), so a run with it leaves a run without it at the first 
 difference; they do not depend on the number of threads. `available()` is False, with the
 reason in `unavailable_reason()`, when the machine is not x86-64 Linux with AVX2 and FMA,
 when no compiler builds it, or when `MJXVINE_NATIVE_CONV=0` (`MJXVINE_NATIVE_CONV=avx2`
-takes the AVX2 build on an AVX-512 CPU); `conv_impl="native"` (`sac.conv_impl: native`)
+takes the AVX2 build on an AVX-512 CPU); `conv_impl="native"` (`train.conv_impl: native`)
 then fails with that reason.
 """
 

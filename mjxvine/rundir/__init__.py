@@ -2,6 +2,10 @@
 run: one writer at a time (`RunLock`), stops on SIGINT / SIGTERM at a chunk boundary
 (`StopSignals`), and failed writes reported in one line (`WriteError`, `free_space`).
 
+Under `python -m mjxvine.train` (`atomic.command_main`) a run that has not stopped within
+`atomic.STOP_GRACE_S` of a signal (a chunk or a compilation that does not end) is ended
+by the command's watchdog, keeping its last intact checkpoint.
+
     RUN_DIR/config.yaml        the resolved config          (`mjxvine.training.loop`)
     RUN_DIR/metrics.jsonl, tb/ one row per member and chunk (`logs.Logger`)
     RUN_DIR/learning_curve.png                              (`logs.plot_learning_curve`)
@@ -18,6 +22,7 @@ they report.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import errno
 import fcntl
@@ -31,13 +36,18 @@ import threading
 from pathlib import Path
 
 from mjxvine import atomic
+# The run stopped on a signal (a BaseException: no `except Exception` takes it for a
+# failure); every command's stop: `atomic.command_main`.
+from mjxvine.atomic import Interrupted
 from mjxvine.config import Config, ConfigError, changed_keys, config_hash, load_config, to_dict
 
 EXIT_USAGE = 2        # a bad argument or config, or a run directory in use
 EXIT_NON_FINITE = 3   # a loss or parameter became NaN / inf
 EXIT_WRITE = 4        # a checkpoint or log could not be written (disk full, ...)
-EXIT_SIGINT = 128 + signal.SIGINT    # 130: stopped by Ctrl-C, checkpoint written
-EXIT_SIGTERM = 128 + signal.SIGTERM  # 143: stopped by SIGTERM, checkpoint written
+# stopped by a signal (every command, `atomic.command_main`); the trainer keeps a checkpoint
+# of the chunk it stopped after, or its last one when it had to stop at once
+EXIT_SIGINT = 128 + signal.SIGINT    # 130: Ctrl-C
+EXIT_SIGTERM = 128 + signal.SIGTERM  # 143: SIGTERM
 
 LOCK_FILE = "lock"
 
@@ -51,14 +61,6 @@ class WriteError(RuntimeError):
   and the free space."""
 
 
-class Interrupted(Exception):
-  """The run stopped on a signal; `signum` says which, the message what was kept."""
-
-  def __init__(self, signum: int, message: str):
-    super().__init__(message)
-    self.signum = signum
-
-
 class ResumeRefused(ValueError):
   """A resume that would not continue the same run: a changed network, image or replay
   setting, or no intact checkpoint to continue from (exit 2, one line)."""
@@ -70,8 +72,7 @@ RUN_RECORD = "run.json"  # the config the run started with, apart from the edita
 # checkpoint cadence, the choice), never the networks, images, replay, envs or members
 RESUME_FREE = ("train.total_env_steps", "train.max_minutes", "train.checkpoint_every_chunks",
                "train.eval_every_chunks", "train.eval_starts", "train.video",
-               "train.keep_eval_policies", "train.select_worlds", "train.select_world_seed",
-               "train.select_candidates", "train.select_runs", "train.select_noise_factors",
+               "train.keep_eval_policies", "train.select_worlds", "train.select_candidates",
                "eval.*")
 
 
@@ -131,7 +132,7 @@ def refuse_changes(run_dir: Path, cfg: Config, base: Config, normalize=lambda c:
   """ResumeRefused, naming the keys and their values, when a resume would change more
   than `RESUME_FREE` (network, image, replay, ... settings: another run). Both configs
   are compared after `normalize` (e.g. `sac.resolve_conv_impl`: a run recorded with
-  `sac.conv_impl: auto` resumes as the tower auto takes)."""
+  `train.conv_impl: auto` resumes as the tower auto takes)."""
   original, cfg = normalize(original_config(run_dir) or base), normalize(cfg)
   changed = [k for k in changed_keys(original, cfg) if not resume_may_change(k)]
   if changed:
@@ -244,6 +245,13 @@ class RunLock:
       os.close(self.fd)
       self.fd = None
 
+  def drop_file(self) -> None:
+    """Removes the lock file if it is still this lock's, keeping the lock: for a process
+    about to end at once (the kernel unlocks), which leaves no stale file."""
+    with contextlib.suppress(OSError):
+      if self.fd is not None and os.stat(self.path).st_ino == os.fstat(self.fd).st_ino:
+        self.path.unlink()
+
   def __enter__(self):
     return self.acquire()
 
@@ -283,8 +291,9 @@ def busy_message(run_dir: Path) -> str:
 class StopSignals:
   """While active, SIGINT and SIGTERM ask the run to stop at the end of the current chunk
   (`requested`: the signal number, or 0); a second SIGINT, or any signal while
-  `stop_now()` is true (nothing would be kept by waiting), raises `Interrupted` at once.
-  Installs nothing outside the main thread (signal handlers can only live there)."""
+  `stop_now()` is true (nothing would be kept by waiting), raises `Interrupted` at once
+  (once per command, and not inside a JAX callback: `atomic.note_signal`). Installs
+  nothing outside the main thread (signal handlers can only live there)."""
 
   SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -295,10 +304,16 @@ class StopSignals:
 
   def _handle(self, signum, frame):
     name = signal.Signals(signum).name
-    if self.stop_now() or (signum == signal.SIGINT and self.requested == signal.SIGINT):
+    at_once = self.stop_now() or (signum == signal.SIGINT and self.requested == signal.SIGINT)
+    # (noted for the command's exit code; a stop under way finishes, bounded by its watchdog)
+    if atomic.note_signal(signum, at_once, frame):
       raise Interrupted(signum, f"stopped at once by {name}")
+    if at_once:
+      return
     self.requested = self.requested or signum
-    self.say(f"\n{name}: stopping after this chunk, with a checkpoint"
+    late = (f" if within {atomic.STOP_GRACE_S:g} s (else at once, keeping the last one)"
+            if atomic.command_signal() else "")
+    self.say(f"\n{name}: stopping after this chunk, with a checkpoint{late}"
              + (" (Ctrl-C again to stop at once)" if signum == signal.SIGINT else ""))
 
   def __enter__(self):

@@ -235,7 +235,7 @@ def _find_key(tree: Any, key: str) -> Any:
 
 
 def best_member(run_dir: Path | None) -> int:
-  """The member of a `--seeds` / sweep run that checkpoints/best follows: the trainer keeps
+  """The member of a `--num-seeds` / sweep run that checkpoints/best follows: the trainer keeps
   the best evaluation of member 0 (RUN_DIR/best.json may name another as "member")."""
   if run_dir is not None and (run_dir / "best.json").is_file():
     try:
@@ -247,7 +247,7 @@ def best_member(run_dir: Path | None) -> int:
 
 def num_members(actor: Any) -> int | None:
   """How many members a restored actor holds: the leading axis of its stacked params (a
-  `--seeds` / sweep run), None for a single actor (its mean head's kernel is 2-D)."""
+  `--num-seeds` / sweep run), None for a single actor (its mean head's kernel is 2-D)."""
   head = _find_key(actor, "mean")
   if not isinstance(head, dict) or "kernel" not in head:
     return None
@@ -283,7 +283,7 @@ def unflatten_params(arrays: dict) -> dict:
 
 
 # Written by `mjxvine.evaluation.choice` in a run dir: the validation worlds' choice of the
-# best policy; of a run of several members (--seeds, sweeps), one choice per member.
+# best policy; of a run of several members (--num-seeds, sweeps), one choice per member.
 SELECTION_JSON = "selection.json"
 SELECTED_POLICY = "selected.npz"
 SELECTED_MEMBERS = "selected_members"  # RUN/selected_members/{selection<k>.json, member<k>.npz}
@@ -321,7 +321,7 @@ def restore_actor_params(path: str | Path, which: str = "best",
   policy file) for which="best" (`selected_policy`, of `member`).
 
   The params are the actor's flax "params" dict of numpy arrays of one member: of a run
-  that trained several (`--seeds`, sweeps; saved with a leading members axis), `member`,
+  that trained several (`--num-seeds`, sweeps; saved with a leading members axis), `member`,
   by default the one checkpoints/best follows (`best_member`). No TrainState template is
   needed: the tree comes from the checkpoint's own metadata. Raises FileNotFoundError (see
   `checkpoint_item`), ValueError (a damaged checkpoint, a member the run does not have)
@@ -344,9 +344,11 @@ def restore_actor_params(path: str | Path, which: str = "best",
   except Exception as e:  # noqa: BLE001 - orbax fails in many ways on damaged files
     raise ValueError(f"{item}: not a readable orbax checkpoint ({type(e).__name__}: "
                      f"{first_line(e)})") from None
-  # the evaluated actor (`LearnerState.policy_params`); checkpoints from before it had
-  # only the learning actor
-  actor = _find_key(tree, "policy_params")
+  # the evaluated actor (`LearnerState.averaged_actor_params`; "policy_params" in
+  # checkpoints of mjxvine 0.2.0); older checkpoints had only the learning actor
+  actor = _find_key(tree, "averaged_actor_params")
+  if actor is None:
+    actor = _find_key(tree, "policy_params")
   if actor is None:
     actor = _find_key(tree, "actor_params")
   if actor is None:

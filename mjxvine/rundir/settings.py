@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Sequence
 
 from mjxvine.rundir.checkpoints import checkpoint_item, run_dir_of
-from mjxvine.config import Config, ConfigError, load_config, read_yaml, robot_spec
+from mjxvine.config import ROBOT_NAMES, Config, ConfigError, load_config, read_yaml, short_repr
 from mjxvine.robot_files import config_values
 from mjxvine.deploy import read_policy_file
 
@@ -58,7 +58,7 @@ def policy_file_settings(path: str | Path) -> dict:
   camera = {"height": h, "width": w, "max_depth_m": float(meta["max_depth_m"])}
   camera.update({k: float(meta[k]) for k in ("fovx_deg", "fovy_deg") if k in meta})
   env = {"v_min": float(low[0]), "v_max": float(high[0]), "w_max": float(high[1])}
-  env.update({k: meta[k] for k in ("control_dt", "yaw_reference", "yaw_offset_deg")
+  env.update({k: meta[k] for k in ("control_dt", "yaw_reference")
               if k in meta})
   sac = {}
   if "dense0/kernel" in arrays and "tower/conv0/kernel" in arrays:
@@ -66,6 +66,32 @@ def policy_file_settings(path: str | Path) -> dict:
            "conv_features": int(arrays["tower/conv0/kernel"].shape[-1])}
   fixed = {"camera": camera, "env": env, "sac": sac}
   return {**own, **{k: {**(own.get(k) or {}), **v} for k, v in fixed.items()}}
+
+
+def _robot_named(config_file: str | Path | None, overrides: Sequence[str]) -> bool:
+  """Whether the user names the robot: `--set robot.name=...` (`--robot`) or robot.name
+  in the `--config` file."""
+  if any(o.split("=", 1)[0].strip() == "robot.name" for o in overrides):
+    return True
+  robot = read_yaml(config_file).get("robot") if config_file else None
+  return isinstance(robot, dict) and "name" in robot
+
+
+def _builtin_robot_only(base: dict, path: Path, named: bool) -> dict:
+  """A policy file's recorded config (`policy_file_settings`) with robot.name a built-in
+  robot: a robot file there would be read from this machine, any path a file names
+  (`config.ROBOT_NAMES` only). Such a name is dropped when the user names the robot
+  (`named`), else refused: ConfigError, one line."""
+  robot = base.get("robot")
+  name = robot.get("name") if isinstance(robot, dict) else None
+  if name is None or name in ROBOT_NAMES:
+    return base
+  if not named:
+    raise ConfigError(f"robot.name = {short_repr(name)}: {path}'s metadata names a robot "
+                      f"file, and a policy file may name only a built-in robot "
+                      f"({', '.join(ROBOT_NAMES)}); give --robot FILE.yaml (or --set "
+                      "robot.name=...) to drive it with a robot file of yours")
+  return {**base, "robot": {k: v for k, v in robot.items() if k != "name"}}
 
 
 def _value(cfg: Config, key: str):
@@ -89,6 +115,7 @@ def policy_config(spec: str | Path, config_file: str | Path | None = None,
   path = Path(spec)
   if path.suffix == ".npz" or path.is_file():
     base, source = policy_file_settings(path), f"{path}'s metadata"
+    base = _builtin_robot_only(base, path, _robot_named(config_file, overrides))
   else:
     found = run_config_file(path, which)
     if found is None:  # an old or hand-made run: the given config, or the defaults
@@ -97,7 +124,7 @@ def policy_config(spec: str | Path, config_file: str | Path | None = None,
     base, source = read_yaml(found), str(found)
   own = load_config(None, (), base)
   cfg = load_config(config_file, overrides, base)
-  from_robot = config_values(robot_spec(cfg.robot.name))  # under --set (RobotConfig)
+  from_robot = config_values(cfg.robot.spec)  # under --set (RobotConfig)
   for key in POLICY_KEYS:
     trained, now = _value(own, key), _value(cfg, key)
     if now != trained and key in from_robot and not any(

@@ -23,7 +23,7 @@ from mjxvine.deploy.export import export_actor, meta_from_config
 from mjxvine.evaluation import choice, starts
 from mjxvine.rundir.checkpoints import Checkpoints
 from mjxvine.rundir.logs import Logger
-from mjxvine.sac import describe_conv_impl
+from mjxvine.networks import describe_conv_impl
 from mjxvine.training.distributed import local
 from mjxvine.training.programs import starts_params
 
@@ -57,12 +57,12 @@ def export_member(cfg: Config, actor, k: int | None, path: Path, chunk: int,
   """Writes member k of the (local) actor params, stacked over members, as a policy file;
   k = None: params of a single-member run (no member axis)."""
   meta = {**meta_from_config(cfg), "member": 0 if k is None else k, "chunk": chunk,
-          "env_steps": env_steps, "conv_tower": describe_conv_impl(cfg.sac.conv_impl)}
+          "env_steps": env_steps, "conv_tower": describe_conv_impl(cfg.train.conv_impl)}
   export_actor(actor if k is None else jax.tree.map(lambda x: x[k], actor), path, meta)
 
 
 class MemberBest:
-  """Each member's best actor of a `--seeds` / sweep run, chosen by its own evaluations
+  """Each member's best actor of a `--num-seeds` / sweep run, chosen by its own evaluations
   from fresh starts (`choice.fresh_start_score`), as a policy file
   RUN_DIR/best_members/member<k>.npz (`python -m mjxvine.evaluate --policy` takes it), its
   scores in RUN_DIR/best_members/scores.json. checkpoints/best follows member 0 alone."""
@@ -107,7 +107,7 @@ class FreshStartEvaluation:
   def evaluate(self, ts, chunk_index: int) -> list[dict]:
     """The scores of every member after `chunk_index` chunks; keeps the best policies."""
     t0 = time.time()
-    out = self.start_eval(starts_params(ts.learner.policy_params, starts.ACTOR, self.seeds),
+    out = self.start_eval(starts_params(ts.learner.averaged_actor_params, starts.ACTOR, self.seeds),
                           self.key)
     rows = [member_scores(out, s) for s in range(self.seeds)]
     steps = int(np.max(ts.env_steps))
@@ -118,9 +118,9 @@ class FreshStartEvaluation:
       self.best = {"chunk": chunk_index, **scores}
       rows[0]["best"] = True
     if self.member_best is not None:
-      self.member_best.update(chunk_index, steps, rows, ts.learner.policy_params)
+      self.member_best.update(chunk_index, steps, rows, ts.learner.averaged_actor_params)
     if (self.cfg.train.keep_eval_policies or self.cfg.train.select_worlds) and self.primary:
-      actor = local(ts.learner.policy_params)
+      actor = local(ts.learner.averaged_actor_params)
       for k in choice.member_ids(self.seeds):  # each member's own
         export_member(self.cfg, actor, k, choice.policy_file(self.run_dir, steps, k),
                       chunk_index, steps)

@@ -1,13 +1,13 @@
 """The trainer: SAC on any batched env (`mjxvine.episodes.TrainEnv`), as pure functions.
 
-`make_trainer(cfg, env)` builds `init(key) -> TrainState` and `chunk(TrainState) ->
-(TrainState, metrics)`: one training iteration (N env steps with exploration, one replay
-insert, G gradient steps once `learning`) is one jit-compiled function, and a chunk is
+`make_trainer(cfg, env)` builds a `Trainer`: `init(key) -> TrainState` and `chunk(TrainState)
+-> (TrainState, metrics)`, one training iteration (N env steps with exploration, one replay
+insert, G gradient steps once `learning`) being one jit-compiled function and a chunk
 `train.iters_per_chunk` of them under `lax.scan` (on the CPU backend a host loop of the
 jitted pieces, see `scan_chunks`). `compiled(cfg, seeds, env)` jits them once per process,
 vmapped over the members of a multi-seed or sweep run (`sweep_members`, `init_members`),
-with envs and replay split over the devices (`mjxvine.training.parallel`). The run around it (CLI,
-logs, plots, checkpoints, evaluations, resume) is `mjxvine.train`.
+with envs and replay split over the devices (`mjxvine.training.parallel`). The run around
+it (logs, plots, checkpoints, evaluations, resume) is `mjxvine.training.loop`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import dataclasses
 import functools
 import itertools
 import sys
-from typing import Any
+from typing import Any, Callable, NamedTuple
 
 import flax.struct
 import jax
@@ -24,9 +24,9 @@ import jax.numpy as jp
 import numpy as np
 
 from mjxvine import networks as nw
-from mjxvine.training import parallel
+from mjxvine.training import parallel, schedules
 from mjxvine import sac as sac_lib
-from mjxvine.config import Config, EvalConfig, TrainConfig, parse_sweep, replace
+from mjxvine.config import Config, EvalConfig, TrainConfig, parse_sweep
 from mjxvine.episodes import PHYSICS, REWARD_PREFIX, SUCCESS, TIMEOUT
 
 
@@ -74,7 +74,7 @@ def make_learner(cfg: Config, env, shard_batch=lambda batch: batch) -> sac_lib.S
   """SAC (`mjxvine.sac.make_sac`) of the config's networks on the env's action box (the
   vineyard's [0, v_max] x [-w_max, w_max], or [-1, 1] for a brax env behind
   `wrappers.brax_env`), with the env's mirror maps when it has them."""
-  nets = nw.make_networks_from_config(cfg, sac_lib.learner_conv_impl(cfg.sac.conv_impl),
+  nets = nw.make_networks_from_config(cfg, nw.learner_conv_impl(cfg.train.conv_impl),
                                       box=(env.action_low, env.action_high))
   mirror = ((env.mirror_obs, env.mirror_action) if hasattr(env, "mirror_obs") else None)
   return sac_lib.make_sac(nets, cfg.sac, shard_batch=shard_batch, mirror=mirror)
@@ -105,8 +105,8 @@ def collect_step(cfg: Config, env, sac, ts: TrainState):
   obs = ts.env_state.obs
   policy_action = sac.act(ts.learner.actor_params, obs, k_act)
   in_warmup = ts.env_steps < cfg.sac.warmup_steps
-  eps = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
-  action = sac_lib.explore_action(k_explore, policy_action, eps, env.action_low,
+  eps = schedules.epsilon(cfg.sac, ts.env_steps, ts.budget)
+  action = schedules.explore_action(k_explore, policy_action, eps, env.action_low,
                                   env.action_high, in_warmup)
   env_state, final_obs = env.step_batch(ts.env_state, action)
   done = env_state.done > 0
@@ -133,42 +133,51 @@ def collect_step(cfg: Config, env, sac, ts: TrainState):
   return ts, k_update, learn
 
 
-def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
-  """Returns (sac, init(key) -> TrainState, chunk(TrainState) -> (TrainState, metrics),
-  collect, learn_step, learn_steps, summarize): a chunk is `train.iters_per_chunk`
-  iterations, each `collect` (env step, replay insert) then, once `learning`, G =
-  sac.grad_steps_per_iter gradient steps (`learn_steps`, or G `learn_step`s); `chunk`
-  runs them on device, the host path calls the pieces.
-  `shard_batch`: see `mjxvine.sac.make_sac` (data parallelism over devices)."""
+class Trainer(NamedTuple):
+  """The pieces of one training iteration (N env steps, one replay insert, then, once
+  `learning`, G = sac.grad_steps_per_iter gradient steps), as pure functions:
+
+  init(key) -> TrainState                 a fresh member
+  chunk(ts) -> (ts, metrics)              `train.iters_per_chunk` iterations, one program
+  collect(ts) -> (ts, k_update, learn)    the env step and the replay insert
+  learn_step(ts, key) -> (ts, metrics)    one gradient step (key: one of split(k_update, G))
+  learn_steps(ts, k_update) -> (ts, m)    the G gradient steps in one program
+  summarize(ts, metrics) -> (ts, m)       a chunk's metrics from its iterations'
+  The host path (`compiled` on the CPU) calls collect, then learn_step(s), then summarize.
+  """
+  sac: sac_lib.SAC
+  init: Callable
+  chunk: Callable
+  collect: Callable
+  learn_step: Callable
+  learn_steps: Callable
+  summarize: Callable
+
+
+def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch) -> Trainer:
+  """The `Trainer` of `cfg` on `env`. `shard_batch`: see `mjxvine.sac.make_sac` (data
+  parallelism over devices)."""
   sac = make_learner(cfg, env, shard_batch)
   init = functools.partial(init_state, cfg, env, sac)
   collect = functools.partial(collect_step, cfg, env, sac)
 
-  def lr_scale(ts: TrainState) -> jax.Array:
-    """This iteration's learning-rate factor (`sac.learning_rate_scale`)."""
-    return sac_lib.learning_rate_scale(cfg.sac, ts.env_steps, ts.budget)
-
   def tau(ts: TrainState):
-    """This iteration's target-critic rate (`sac.target_rate`)."""
-    return sac_lib.target_rate(cfg.sac, ts.env_steps, ts.budget)
+    """This iteration's target-critic rate (`schedules.target_rate`)."""
+    return schedules.target_rate(cfg.sac, ts.env_steps, ts.budget)
 
   def learn_step(ts: TrainState, key: jax.Array):
-    """One gradient step on a replay batch: `key` is one of split(k_update, G)."""
-    learner, metrics = sac.update_from(ts.learner, ts.buffer, key, lr_scale(ts), tau(ts))
+    learner, metrics = sac.update_from(ts.learner, ts.buffer, key, tau(ts))
     return ts.replace(learner=learner), metrics
 
   def learn_steps(ts: TrainState, k_update: jax.Array):
-    """The iteration's G gradient steps in one program (`sac.update_many`, as `iteration`
-    takes them), with the keys of G `learn_step`s; metrics averaged over them."""
-    learner, metrics = sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts), tau(ts))
+    learner, metrics = sac.update_many(ts.learner, ts.buffer, k_update, tau(ts))
     return ts.replace(learner=learner), metrics
 
   def iteration(ts: TrainState, _):
     """collect, then G gradient steps if due (lax.cond): the device path."""
     ts, k_update, learn = collect(ts)
     learner, metrics = jax.lax.cond(
-        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update, lr_scale(ts),
-                                       tau(ts)),
+        learn, lambda: sac.update_many(ts.learner, ts.buffer, k_update, tau(ts)),
         lambda: (ts.learner, _zero_metrics(sac, ts.learner, ts.buffer, k_update)))
     metrics["learning"] = learn.astype(jp.float32)
     return ts.replace(learner=learner), metrics
@@ -179,8 +188,7 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
     learning = metrics.pop("learning")
     w = learning / jp.maximum(learning.sum(), 1.0)
     out = {k: jp.sum(v * w) for k, v in metrics.items()}
-    out["eps"] = sac_lib.epsilon(cfg.sac, ts.env_steps, ts.budget)
-    out["lr_scale"] = lr_scale(ts)
+    out["eps"] = schedules.epsilon(cfg.sac, ts.env_steps, ts.budget)
     out["tau"] = jp.asarray(tau(ts), jp.float32)
     out["alpha"] = jp.exp(ts.learner.log_alpha)
     out["finite"] = _all_finite(ts.learner)
@@ -189,26 +197,24 @@ def make_trainer(cfg: Config, env, shard_batch=lambda batch: batch):
   def chunk(ts: TrainState):
     return summarize(*jax.lax.scan(iteration, ts, None, cfg.train.iters_per_chunk))
 
-  return sac, init, chunk, collect, learn_step, learn_steps, summarize
+  return Trainer(sac, init, chunk, collect, learn_step, learn_steps, summarize)
 
 
-def scan_chunks(cfg: Config) -> bool:
+def scan_chunks() -> bool:
   """Whether a chunk runs as one `lax.scan` program. On XLA's CPU backend convolutions
   inside a loop run ~20-100x slower (jax-ml/jax#12868), so there the host loops over the
   jitted iteration instead; accelerators scan."""
-  if cfg.train.chunk_loop == "auto":
-    return jax.default_backend() != "cpu"
-  return cfg.train.chunk_loop == "scan"
+  return jax.default_backend() != "cpu"
 
 
 @functools.lru_cache(maxsize=4)
 def compiled(cfg: Config, seeds: int, env):
   mesh = parallel.make_mesh(cfg.train.devices)
   parallel.check_divisible(mesh, cfg.env.num_envs, cfg.sac.batch_size)
-  sac, init, chunk, collect, learn_step, learn_steps, summarize = make_trainer(
-      cfg, env, parallel.batch_constraint(mesh, seeds))
+  trainer = make_trainer(cfg, env, parallel.batch_constraint(mesh, seeds))
+  sac = trainer.sac
   batch = (lambda f: f) if seeds == 1 else jax.vmap
-  init_one = (lambda k: init(k[0])) if seeds == 1 else jax.vmap(init)
+  init_one = (lambda k: trainer.init(k[0])) if seeds == 1 else jax.vmap(trainer.init)
   keys = jax.ShapeDtypeStruct((seeds, 2), jp.uint32)
   abstract = jax.eval_shape(init_one, keys)
   shard = parallel.train_state_sharding(abstract, mesh, seeds)
@@ -218,22 +224,22 @@ def compiled(cfg: Config, seeds: int, env):
   jit_state = lambda f, outs, **kw: jax.jit(f, donate_argnums=0,
                                             out_shardings=(shard, *outs), **kw)
   # the programs with gradient steps: on the CPU without YNNPACK's convolutions
-  learner_options = dict(compiler_options=sac_lib.learner_compiler_options())
-  if scan_chunks(cfg):
-    return sac, init_fn, jit_state(batch(chunk), (None,), **learner_options)
+  learner_options = dict(compiler_options=nw.learner_compiler_options())
+  if scan_chunks():
+    return sac, init_fn, jit_state(batch(trainer.chunk), (None,), **learner_options)
   # The host path: the env step and the gradient steps are separate programs, so each is
   # compiled once. The G gradient steps of an iteration are one call of a loop where the
   # towers are the native kernel; else G calls of one step (no XLA convolution in a loop
   # body), at the cost of a dispatch, and the state's arguments parsed, per step.
   g = cfg.sac.grad_steps_per_iter
   one_call = nw.native_towers(sac.nets)
-  collect_fn = jit_state(batch(collect), (None, None))
-  learn_fn = jit_state(batch(learn_steps if one_call else learn_step), (None,),
+  collect_fn = jit_state(batch(trainer.collect), (None, None))
+  learn_fn = jit_state(batch(trainer.learn_steps if one_call else trainer.learn_step), (None,),
                        **learner_options)
   split_fn = jax.jit(batch(lambda k: jax.random.split(k, g)))
-  summarize_fn = jax.jit(batch(summarize))
+  summarize_fn = jax.jit(batch(trainer.summarize))
   lead = () if seeds == 1 else (seeds,)
-  metric_shapes = jax.eval_shape(batch(learn_step), abstract,
+  metric_shapes = jax.eval_shape(batch(trainer.learn_step), abstract,
                                  jax.ShapeDtypeStruct(lead + (2,), jp.uint32))[1]
   idle = {k: jp.zeros(v.shape, v.dtype) for k, v in metric_shapes.items()}
   idle["learning"] = jp.zeros(lead)
@@ -273,20 +279,19 @@ def compiled(cfg: Config, seeds: int, env):
   return sac, init_fn, host_chunk
 
 
-# train.* fields read only by what runs around the compiled chunks (files, the selection)
-_AFTER_TRAINING = ("keep_eval_policies", "select_worlds", "select_world_seed",
-                   "select_candidates", "select_runs", "select_noise_factors")
+# The train.* keys that shape the compiled program; every other train.* key, and eval.*,
+# is read only by what runs around the compiled chunks (budget, files, evaluations, choice).
+PROGRAM_TRAIN_KEYS = ("iters_per_chunk", "devices", "conv_impl")
 
 
 def compile_key(cfg: Config) -> Config:
-  """`cfg` without the fields that do not shape the compiled program (and with the conv
-  tower `sac.conv_impl: auto` takes here: the same program either way)."""
-  return replace(sac_lib.resolve_conv_impl(cfg), train={"total_env_steps": 1, "checkpoint_every_chunks": 1,
-                             "save_replay": False, "sweep": "", "num_seeds": 1,
-                             "max_minutes": 0.0, "eval_every_chunks": 0, "eval_starts": 1,
-                             "video": False,
-                             **{k: getattr(TrainConfig(), k) for k in _AFTER_TRAINING}},
-                 eval=dataclasses.asdict(EvalConfig()))  # the protocol after training
+  """`cfg` as far as it shapes the compiled program: the world, robot, camera, env and sac
+  sections, `PROGRAM_TRAIN_KEYS` of train (with the conv tower `train.conv_impl: auto`
+  takes here: the same program either way); train's other keys and eval at defaults."""
+  cfg = nw.resolve_conv_impl(cfg)
+  return dataclasses.replace(
+      cfg, train=TrainConfig(**{k: getattr(cfg.train, k) for k in PROGRAM_TRAIN_KEYS}),
+      eval=EvalConfig())
 
 
 def _reward_terms(env_state) -> list[str]:

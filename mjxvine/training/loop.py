@@ -21,6 +21,7 @@ import dataclasses
 import functools
 import json
 import math
+import os
 import signal
 import sys
 import time
@@ -31,13 +32,14 @@ import jax
 import jax.numpy as jp
 import numpy as np
 
+from mjxvine import networks as nw
 from mjxvine import sac as sac_lib
 from mjxvine import atomic
-from mjxvine.config import Config, load_config, to_yaml
+from mjxvine.config import Config, ConfigError, load_config, to_yaml
 from mjxvine.rundir import (Interrupted, ResumeRefused, RunDirBusy, RunLock, StopSignals,
                             original_config, record_fact, refuse_changes, set_aside,
                             write_run_record)
-from mjxvine.rundir.checkpoints import Checkpoints
+from mjxvine.rundir.checkpoints import Checkpoints, remove_partial_steps
 from mjxvine.rundir.logs import Logger, clear_events, plot_learning_curve, truncate_metrics
 from mjxvine.training import distributed, hooks, report
 from mjxvine.training.iteration import NonFiniteError, compile_key, init_members, sweep_members
@@ -47,6 +49,96 @@ from mjxvine.training.programs import compiled_trainer, default_env, start_evalu
 def _say(quiet: bool) -> Callable:
   return (lambda *a, **k: None) if quiet else functools.partial(print, file=sys.stderr,
                                                                  flush=True)
+
+
+# The memory check (`check_memory`): a run may plan on this share of the memory free when
+# it starts (XLA's programs and scratch, the host's other work need the rest); per env, the
+# physics state and the working arrays of its step besides the frames (a measured vineyard
+# env state is about 25 KB with a 40 x 40 image: this leaves room for the step's own).
+MEMORY_MARGIN = 0.9
+ENV_BYTES = 256 << 10
+FRAMES_PER_ENV = 8  # the observation, the rendered and noisy frames, the step's copies
+
+
+def memory_estimate(cfg: Config, members: int, env=None) -> dict[str, int]:
+  """Bytes a run of `cfg` holds, roughly, for its `members` together, known before
+  anything is built: "replay" (exact: `replay.init_buffer`'s shapes, `jax.eval_shape`),
+  "envs" (the training envs and the fresh-start evaluation's) and "batch" (a learner
+  batch with its conv activations). `env`: a custom `TrainEnv` (its observation traced)."""
+  n = cfg.env.num_envs
+  if env is None:  # the vineyard env's observation (`env.VineyardEnv`)
+    f32 = lambda *shape: jax.ShapeDtypeStruct(shape, jp.float32)
+    obs = {"depth": f32(n, cfg.camera.height, cfg.camera.width, 1), "state": f32(n, 3)}
+    action_size = 2
+  else:
+    obs = jax.eval_shape(lambda k: env.reset_batch(k, n).obs, jax.random.PRNGKey(0))
+    action_size = env.action_size
+  buffer = jax.eval_shape(lambda o: sac_lib.init_buffer(
+      o, action_size, cfg.sac.buffer_size, cfg.camera.max_depth_m,
+      depth_dtype=jp.dtype(cfg.sac.replay_depth_dtype)), obs)
+  frame = sum(math.prod(x.shape[1:]) * x.dtype.itemsize for x in jax.tree.leaves(obs))
+  envs = (n + 2 * cfg.train.eval_starts) * (FRAMES_PER_ENV * frame + ENV_BYTES)
+  batch = cfg.sac.batch_size * frame * (2 + cfg.sac.conv_features)
+  return {"replay": members * sac_lib.buffer_nbytes(buffer), "envs": members * envs,
+          "batch": members * batch}
+
+
+def available_memory() -> tuple[int, str] | None:
+  """(bytes free, what they are) where a run's arrays will live: an accelerator's memory
+  as JAX reports it (its allocator's limit less what is in use), else the host's
+  MemAvailable (/proc/meminfo, else `os.sysconf`); None where it is not known."""
+  device = jax.local_devices()[0]
+  if device.platform != "cpu":
+    try:
+      stats = device.memory_stats() or {}
+    except Exception:  # noqa: BLE001 - a backend without memory statistics
+      stats = {}
+    if stats.get("bytes_limit"):
+      return (int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0)),
+              f"the {device.device_kind}'s memory")
+    return None
+  try:
+    for line in Path("/proc/meminfo").read_text().splitlines():
+      if line.startswith("MemAvailable:"):
+        return int(line.split()[1]) * 1024, "this machine's available memory (MemAvailable)"
+  except (OSError, ValueError, IndexError):
+    pass
+  try:
+    return (os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"),
+            "this machine's free memory")
+  except (ValueError, OSError, AttributeError):
+    return None
+
+
+def check_memory(cfg: Config, env=None) -> None:
+  """Refuses a run that cannot fit, before anything is made or compiled: ConfigError, one
+  line naming the keys, when `memory_estimate` (per device of `train.devices`) exceeds
+  MEMORY_MARGIN of `available_memory`. MJXVINE_MEMORY_CHECK=0 skips it (swap, or memory
+  that the figures do not see)."""
+  if os.environ.get("MJXVINE_MEMORY_CHECK", "1") == "0":
+    return
+  free = available_memory()
+  if free is None:
+    return
+  members = len(sweep_members(cfg))
+  parts = memory_estimate(cfg, members, env)
+  used = min(cfg.train.devices or jax.device_count(), jax.device_count())
+  # the host holds what all of this process's devices hold; an accelerator its share
+  share = (min(used, jax.local_device_count()) if jax.local_devices()[0].platform == "cpu"
+           else 1) / used
+  need = sum(parts.values()) * share
+  available, where = free
+  if need <= MEMORY_MARGIN * available:
+    return
+  mib = lambda b: f"{b * share / 2**20:,.0f} MiB"
+  raise ConfigError(
+      f"the run needs about {mib(sum(parts.values()))}, {where} is "
+      f"{available / 2**20:,.0f} MiB: replay {mib(parts['replay'])} (sac.buffer_size "
+      f"{cfg.sac.buffer_size} x sac.replay_depth_dtype {cfg.sac.replay_depth_dtype} x "
+      f"{members} member(s): train.num_seeds, train.sweep), envs {mib(parts['envs'])} "
+      f"(env.num_envs {cfg.env.num_envs}, train.eval_starts {cfg.train.eval_starts}), batch "
+      f"{mib(parts['batch'])} (sac.batch_size {cfg.sac.batch_size}); lower them "
+      f"(MJXVINE_MEMORY_CHECK=0 skips this check)")
 
 
 def last_row(run_dir: Path) -> dict:
@@ -80,11 +172,17 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   The run holds RUN_DIR's lock throughout (`rundir.RunLock`; `rundir.RunDirBusy` if
   another process has it). A resume cuts metrics.jsonl and the TensorBoard events back to
   the restored checkpoint. SIGINT / SIGTERM end the current chunk, write a checkpoint and
-  raise `rundir.Interrupted`; a failed checkpoint write raises `rundir.WriteError`. With
-  several processes (`jax.distributed`) every process calls this; all of them enter the
-  same collectives, process 0 alone writes logs and prints.
+  raise `rundir.Interrupted` (at once, keeping the last checkpoint, when they come while
+  the run is set up or its first chunk compiles; a second Ctrl-C too); under
+  `atomic.command_main` a run not stopped within `atomic.STOP_GRACE_S` is ended by its
+  watchdog, the partial checkpoint of a save removed. A failed checkpoint write raises
+  `rundir.WriteError`. With several processes (`jax.distributed`) every process calls
+  this; all of them enter the same collectives, process 0 alone writes logs and prints.
+  First of all, a run that would not fit in memory is refused (`check_memory`:
+  ConfigError).
   """
   primary = jax.process_index() == 0
+  check_memory(cfg, env)  # before the run directory is made or anything compiled
   run_dir.mkdir(parents=True, exist_ok=True)
   lock, busy = None, None
   if primary:
@@ -95,11 +193,27 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   if distributed.max_over_processes(int(busy is not None)):  # every process refuses, or none
     raise busy or RunDirBusy(f"{run_dir} is in use (process 0 holds no lock)")
   try:
-    return _train(cfg, run_dir, resume, evaluate_at_end, quiet or not primary, env, primary,
-                  restart)
+    with atomic.on_stop(functools.partial(_stop_cleanup, run_dir, lock)):
+      return _train(cfg, run_dir, resume, evaluate_at_end, quiet or not primary, env,
+                    primary, restart)
   finally:
     if lock is not None:
       lock.release()
+
+
+def _stop_cleanup(run_dir: Path, lock: RunLock | None) -> str:
+  """What a stop by a signal leaves of the run (`atomic.on_stop`, maybe from the watchdog
+  thread while the main thread is in compiled code): the partial checkpoint of an
+  interrupted save is removed (the newest intact one stays what a resume restores), and
+  the lock file. Returns what the run keeps, for the line the stop says."""
+  folder = run_dir / "checkpoints"
+  if lock is not None:  # the run's one writer
+    remove_partial_steps(folder)
+    lock.drop_file()
+  steps = sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) \
+      if folder.is_dir() else []
+  kept = f"the run keeps checkpoint {steps[-1]}" if steps else "no checkpoint yet"
+  return f"{kept}; resume with: python -m mjxvine.train --resume {run_dir}"
 
 
 @dataclasses.dataclass
@@ -124,8 +238,8 @@ def _set_up(cfg: Config, run_dir: Path, resume: bool, restart: bool, env,
   to the restored checkpoint. Returns the last row instead of a run already complete."""
   tell = _say(not primary)  # what a resume found is said even when quiet
   if resume:  # the same run or a clear refusal, before anything is built
-    refuse_changes(run_dir, cfg, _config_yaml(run_dir, cfg), sac_lib.resolve_conv_impl)
-  tower = sac_lib.describe_conv_impl(cfg.sac.conv_impl)
+    refuse_changes(run_dir, cfg, _config_yaml(run_dir, cfg), nw.resolve_conv_impl)
+  tower = nw.describe_conv_impl(cfg.train.conv_impl)
   if primary:  # the tower that runs, resolved: the same config trains the same way
     atomic.write_text(run_dir / "config.yaml",
                       f"# conv tower: {tower}\n{to_yaml(cfg)}")
@@ -218,7 +332,7 @@ def _describe(cfg: Config, run_dir: Path, run: _Run) -> str:
           f"({nbytes / max(cfg.sac.buffer_size, 1):.0f} B/transition); device "
           f"{jax.devices()[0].device_kind} x {cfg.train.devices or jax.device_count()}"
           + (f" over {jax.process_count()} processes" if jax.process_count() > 1 else "")
-          + f"; conv tower {sac_lib.describe_conv_impl(cfg.sac.conv_impl)}")
+          + f"; conv tower {nw.describe_conv_impl(cfg.train.conv_impl)}")
 
 
 def _check_finite(m: dict, ts, chunk_index: int, ckpt: Checkpoints) -> None:
@@ -243,11 +357,18 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
                      f"{cfg.train.total_env_steps} env steps)")
       say(f"{run.stopped}: stopping (a safety net: the budget is train.total_env_steps)")
       break
-    if t_compile is None:
+    first = t_compile is None
+    if first:
       say("compiling the training iteration (the first chunk includes it)...")
+      # a signal during the compilation stops at once: the chunk holds nothing to keep
+      stop_now, stops.stop_now = stops.stop_now, lambda: True
     t0 = time.time()
-    ts, m = run.chunk_fn(ts)
-    m = jax.device_get(m)
+    try:
+      ts, m = run.chunk_fn(ts)
+      m = jax.device_get(m)
+    finally:
+      if first:
+        stops.stop_now = stop_now
     dt = time.time() - t0
     if t_compile is None:
       t_compile = dt
@@ -269,7 +390,7 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
 def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quiet: bool,
            env, primary: bool, restart: bool) -> dict:
   say = _say(quiet)
-  cfg = sac_lib.resolve_conv_impl(cfg)  # `auto` as the tower it takes here
+  cfg = nw.resolve_conv_impl(cfg)  # `auto` as the tower it takes here
   phase = ["setup"]  # a signal stops at once but while training (nothing to keep)
   stops = StopSignals(stop_now=lambda: phase[0] != "training", say=say)
   with stops:
@@ -299,9 +420,9 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
       checkpoints.at_end(ts, chunk_index)  # stopped early (a signal, train.max_minutes)
       phase[0] = "closing"
       if signum:
+        # what a resume needs and no more, so that the stop fits in its grace (the
+        # learning curve, a second or two, is drawn when the run ends)
         logger.close()
-        if primary:
-          plot_learning_curve(run_dir)
         raise Interrupted(signum, f"stopped by {signal.Signals(signum).name} after chunk "
                           f"{chunk_index} ({int(np.max(ts.env_steps))} env steps); "
                           f"checkpoint {chunk_index} written")
@@ -313,14 +434,14 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
       log.last_row["stopped"] = run.stopped
       if primary:
         record_fact(run_dir, stopped=run.stopped)
-    return _finish(cfg, run_dir, run, ts, evaluation, log.last_row, evaluate_at_end,
-                   primary, say)
+    return _finish(cfg, run_dir, dataclasses.replace(run, ts=ts), evaluation, log.last_row,
+                   evaluate_at_end, primary, say)
 
 
-def _finish(cfg: Config, run_dir: Path, run: _Run, ts, evaluation, row: dict,
+def _finish(cfg: Config, run_dir: Path, run: _Run, evaluation, row: dict,
             evaluate_at_end: bool, primary: bool, say: Callable) -> dict:
-  """After the loop: the learning curve, the best scores in the last row, the choice on
-  validation worlds and the closing report."""
+  """After the loop (`run` with its last TrainState as `run.ts`): the learning curve, the
+  best scores in the last row, the choice on validation worlds and the closing report."""
   from mjxvine.evaluation import choice
   if primary:
     plot_learning_curve(run_dir)
@@ -334,6 +455,8 @@ def _finish(cfg: Config, run_dir: Path, run: _Run, ts, evaluation, row: dict,
     selected = records[0]["selected"]
     row["selected_env_steps"] = selected
   if run.vineyard and evaluate_at_end:
-    report.closing_report(cfg, run_dir, run.sac, run.ckpt, ts, len(run.members), best, row,
-                          say, evaluation.start_eval, evaluation.key, primary, selected)
+    summary = report.RunSummary(run_dir, run.sac, run.ckpt, run.ts, len(run.members), best,
+                                selected)
+    report.closing_report(cfg, summary, row, say, evaluation.start_eval, evaluation.key,
+                          primary)
   return row

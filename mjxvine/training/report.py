@@ -5,7 +5,7 @@ protocol, for information), and where the run's files are."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 
@@ -26,16 +26,28 @@ def summary_line(row: dict, best: dict | None) -> str:
   return text
 
 
-def baselines(cfg: Config, ckpt: Checkpoints, ts, seeds: int, best: dict, row: dict,
-              say: Callable, start_eval, eval_key):
+class RunSummary(NamedTuple):
+  """A trained run at its end, as the closing report reads it."""
+  run_dir: Path
+  sac: Any  # the learner (`sac.SAC`): its networks drive the test world
+  ckpt: Checkpoints
+  ts: Any  # the last TrainState, every member
+  seeds: int  # members trained at once
+  best: dict | None  # the best fresh-start scores (member 0, best.json); None: none yet
+  selected: int | None = None  # env steps of the policy chosen on validation worlds
+
+
+def baselines(cfg: Config, run: RunSummary, row: dict, say: Callable, start_eval, eval_key):
   """The best checkpoint's actor (all members), after printing its fresh-start scores
-  beside the baselines' from the same starts (added to `row` as straight_* and random_*).
-  Every process enters the restore and the evaluations (collectives over all devices)."""
+  (`run.best`, not None) beside the baselines' from the same starts (`start_eval` with
+  `eval_key`; added to `row` as straight_* and random_*). Every process enters the
+  restore and the evaluations (collectives over all devices)."""
   from mjxvine.evaluation import starts
-  actor = ts.learner.policy_params
-  restored = ckpt.restore(ts, best=True)
+  ts, best, seeds = run.ts, run.best, run.seeds
+  actor = ts.learner.averaged_actor_params
+  restored = run.ckpt.restore(ts, best=True)
   if restored is not None:
-    actor = restored[1].learner.policy_params
+    actor = restored[1].learner.averaged_actor_params
   say(f"\nbest policy (chunk {best['chunk']}, {best['env_steps']} env steps) from "
       f"{2 * cfg.train.eval_starts} fresh starts on the training rows: {eval_line(best)}")
   for name, policy in starts.BASELINES.items():
@@ -58,9 +70,10 @@ def test_world(cfg: Config, run_dir: Path, sac, actor, which: str, seeds: int, r
   world = load_test_world(cfg.world)
   say(f"evaluating the best policy on the test world ({len(world.lanes) * 2 * runs} runs, "
       f"the paper's protocol; for information)...")
+  source = rollout.PolicySource(
+      "checkpoint", policy=actor_policy(sac.nets, actor, mirror=averaging_mirror(cfg)))
   doc, tracks = rollout.run_protocol(
-      cfg, "checkpoint", world, runs=runs, noise_factor=cfg.eval.noise_factor,
-      policy=actor_policy(sac.nets, actor, mirror=averaging_mirror(cfg)),
+      cfg, source, world, rollout.Protocol(runs, cfg.eval.noise_factor),
       video=video.video_after_train(world) if cfg.train.video else ())
   member = ", member 0" if seeds > 1 else ""
   doc["policy"] = f"{run_dir} ({which}, train.seed {cfg.train.seed}{member})"
@@ -76,17 +89,17 @@ def test_world(cfg: Config, run_dir: Path, sac, actor, which: str, seeds: int, r
       say(f"no videos: {e}")
 
 
-def closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seeds: int,
-                   best: dict | None, row: dict, say: Callable, start_eval, eval_key,
-                   primary: bool = True, selected: int | None = None) -> None:
+def closing_report(cfg: Config, run: RunSummary, row: dict, say: Callable, start_eval,
+                   eval_key, primary: bool = True) -> None:
   """Prints the best policy's evaluation on fresh starts beside the baselines
   (`baselines`), evaluates it on the test world (`test_world`; process 0 alone, on its own
-  device) and names the files of the run. selected: the env steps of the policy chosen on
-  validation worlds (RUN/selected.npz, `mjxvine.evaluation.choice`), which the test world
-  then drives instead of checkpoints/best."""
-  actor = ts.learner.policy_params
-  if best is not None:
-    actor = baselines(cfg, ckpt, ts, seeds, best, row, say, start_eval, eval_key)
+  device) and names the files of the run. With `run.selected` (the env steps of the
+  policy chosen on validation worlds: RUN/selected.npz, `mjxvine.evaluation.choice`) the
+  test world drives that policy instead of checkpoints/best."""
+  run_dir, seeds, selected = run.run_dir, run.seeds, run.selected
+  actor = run.ts.learner.averaged_actor_params
+  if run.best is not None:
+    actor = baselines(cfg, run, row, say, start_eval, eval_key)
   actor = local(actor)
   if seeds > 1:
     actor = jax.tree.map(lambda x: x[0], actor)
@@ -98,8 +111,8 @@ def closing_report(cfg: Config, run_dir: Path, sac, ckpt: Checkpoints, ts, seeds
     actor, _ = restore_actor_params(run_dir)  # RUN/selected.npz
     which = f"policy selected on validation worlds, {selected} env steps"
   if runs > 0:
-    test_world(cfg, run_dir, sac, actor, which, seeds, row, say)
+    test_world(cfg, run_dir, run.sac, actor, which, seeds, row, say)
   say(f"wrote {run_dir}/: open learning_curve.png first" +
       (", then eval/trajectories.png and eval/results.md" if runs > 0 else "") +
       "; metrics.jsonl and tb/ (tensorboard --logdir) hold every chunk, checkpoints/ the "
-      "last and best policies (python -m mjxvine.export --checkpoint " + f"{run_dir})")
+      "last and best policies (python -m mjxvine.export --policy " + f"{run_dir})")

@@ -7,12 +7,13 @@ from mjxvine.worlds.build import (build_model, build_models, build_spec, plant_g
 from mjxvine.worlds.layout import (Lane, Vineyard, WorldFileError, generate_world, load_world,
                                    save_world, world_extent)
 from mjxvine.worlds.robots import ROBOTS, RobotSpec, robot_spec, wheel_speeds
-from mjxvine.worlds.store import load_test_world, make_world, pool_worlds, world_of
+from mjxvine.worlds.store import (TEST_WORLD_SEED, load_test_world, make_world, pool_worlds,
+                                  world_of)
 
 __all__ = [
     "Lane", "Vineyard", "WorldFileError", "generate_world", "load_world", "save_world",
     "world_extent",
     "build_model", "build_models", "build_spec", "plant_slots_for", "plant_geom_ids",
     "terrain_height", "random_poses", "batch_models", "take_world", "ROBOTS", "RobotSpec",
-    "robot_spec", "wheel_speeds", "load_test_world", "make_world", "pool_worlds", "world_of",
+    "robot_spec", "wheel_speeds", "load_test_world", "TEST_WORLD_SEED", "make_world", "pool_worlds", "world_of",
 ]

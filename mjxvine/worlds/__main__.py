@@ -1,11 +1,13 @@
 """`python -m mjxvine.worlds`: write a vineyard's MJCF, JSON description and map.
 
-  python -m mjxvine.worlds --kind test --seed 0 --robot jackal --out out/test0
-  python -m mjxvine.worlds --kind train --seed 3 --out out/train3 --depth-at 2,0.9,0
+  python -m mjxvine.worlds --kind test --world 0 --robot jackal --out out/test0
+  python -m mjxvine.worlds --kind train --world 3 --out out/train3 --depth-at 2,0.9,0
   python -m mjxvine.worlds --kind test --out out/test0 --depth-at 2,0,0 --policy policy.npz
-  python -m mjxvine.worlds --from examples/vineyard-block.geojson --out out/block
+  python -m mjxvine.worlds --world examples/vineyard-block.geojson --out out/block
 
---depth-at also draws the robot and its camera frustum on the map (world.png). The depth
+--world takes a seed (a generated world of --kind) or a file: a vineyard file (.geojson,
+.csv) or a saved world .json, as `evaluate --world` and `view --world` do. --depth-at also
+draws the robot and its camera frustum on the map (world.png). The depth
 image is rendered with the config's camera (--set camera.width=...), or with the image
 size, FOVs and max depth that a policy was trained with (--policy FILE.npz).
 """
@@ -20,13 +22,14 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from mjxvine.atomic import OutputError, atomic_path, check_output, write_text
-from mjxvine.config import add_config_args, config_from_args
+from mjxvine.atomic import OutputError, atomic_path, check_output, command_main, write_text
+from mjxvine.cli import ROBOT_HELP, CommandParser
+from mjxvine.config import add_config_args, config_from_args, short_repr
 from mjxvine.deploy import PolicyFormatError, read_policy_file
 from mjxvine.worlds.build import build_spec, terrain_height
+from mjxvine.worlds.layout import save_world
 from mjxvine.worlds.plot import save_map
-from mjxvine.worlds.robots import robot_spec
-from mjxvine.worlds.store import make_world, world_of
+from mjxvine.worlds.store import world_of
 
 SETTLE_S = 1.0
 
@@ -93,30 +96,46 @@ def camera_overrides(policy_file: str | Path) -> list[str]:
   return out
 
 
+MAX_YAW = 2 * np.pi  # one turn either way
+
+
 def _parse_pose(text: str) -> list[float]:
-  """"X,Y,YAW" -> [x m, y m, yaw rad]; ValueError if not three finite numbers."""
+  """"X,Y,YAW" -> [x m, y m, yaw rad]; ValueError if not three finite numbers with
+  |yaw| <= MAX_YAW (where x, y may go: `_check_pose`, once the world is known)."""
   pose = [float(v) for v in text.split(",")]
-  if len(pose) != 3 or not np.all(np.isfinite(pose)):
+  if len(pose) != 3 or not np.all(np.isfinite(pose)) or abs(pose[2]) > MAX_YAW:
     raise ValueError(text)
   return pose
 
 
-def main(argv=None) -> int:
-  p = argparse.ArgumentParser(prog="python -m mjxvine.worlds", description=__doc__,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--kind", choices=("train", "test"), default="test")
-  p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--from", dest="source", default=None, metavar="FILE",
-                 help="a vineyard file instead of a generated world: GeoJSON rows in "
-                      "longitude/latitude or a CSV of plants in metres "
-                      "(docs/your-vineyard.md), or a saved world .json")
+def _check_pose(pose: list[float], world) -> str | None:
+  """Why the robot cannot stand at `pose` in `world` (None if it can): (x, y) must lie on
+  its terrain, `terrain_extent`."""
+  xmin, xmax, ymin, ymax = world.terrain_extent
+  if xmin <= pose[0] <= xmax and ymin <= pose[1] <= ymax:
+    return None
+  return (f"--depth-at: ({pose[0]:g}, {pose[1]:g}) is off the world's terrain, x "
+          f"{xmin:.2f}..{xmax:.2f} m and y {ymin:.2f}..{ymax:.2f} m")
+
+
+def parser() -> argparse.ArgumentParser:
+  """The command line's flags."""
+  p = CommandParser(prog="python -m mjxvine.worlds", description=__doc__)
+  p.add_argument("--world", default="0", metavar="SEED|FILE",
+                 help="the world: a seed (a generated world of --kind; default 0) or a "
+                      "file: a vineyard file (GeoJSON rows in longitude/latitude, a CSV of "
+                      "plants in metres: docs/your-vineyard.md) or a saved world .json")
+  p.add_argument("--kind", choices=("train", "test"), default="test",
+                 help="with a seed as --world: a training world (as the training pool "
+                      "draws them) or a test one (the test lanes' shapes; test seed 0 is the "
+                      "committed test vineyard). Default: test")
   p.add_argument("--plant-spacing", type=float, default=None, metavar="M",
-                 help="with --from: plant spacing (m) of GeoJSON row lines that do not "
-                      "give plant_spacing_m")
-  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml",
-                 help="a built-in robot (jackal, husky) or a robot file (docs/your-robot.md); "
-                      "default: the config's robot.name")
-  p.add_argument("--out", required=True, help="output directory")
+                 help="with a GeoJSON vineyard file as --world: plant spacing (m) of row "
+                      "lines that do not give plant_spacing_m")
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml", help=ROBOT_HELP)
+  p.add_argument("--out", required=True, metavar="DIR",
+                 help="output directory, made if missing: world.xml (MJCF), world.json, "
+                      "world.png (the map); with --depth-at the depth images")
   p.add_argument("--depth-at", default=None, metavar="X,Y,YAW",
                  help="also place the robot there (m, m, rad), write its depth image and "
                       "draw it with its camera frustum on the map")
@@ -124,13 +143,25 @@ def main(argv=None) -> int:
                  help="use the camera of this exported policy (image size, FOVs, max depth "
                       "from its metadata); --set camera.* still overrides it")
   add_config_args(p)
+  return p
+
+
+WRITES = ("world.xml", "world.json", "world.png", "depth.npy", "depth_noisy.npy",
+          "camera.json", "depth.png")  # what --out gets
+
+
+def main(argv=None) -> int:
+  """The CLI: 0 written, 2 a bad argument, world file or policy file (one line); stopped
+  by SIGINT / SIGTERM (`atomic.command_main`): 130 / 143, nothing of the set written."""
+  p = parser()
   args = p.parse_args(argv)
   pose = None
   if args.depth_at:
     try:
       pose = _parse_pose(args.depth_at)
     except ValueError:
-      p.error(f"--depth-at {args.depth_at!r}: expected X,Y,YAW (three numbers)")
+      p.error(f"--depth-at {short_repr(args.depth_at)}: expected X,Y,YAW (three finite "
+              "numbers: m, m, rad with |YAW| <= 2 pi)")
   extra = [f"robot.name={args.robot}"] if args.robot else []
   if args.policy:
     try:
@@ -140,22 +171,28 @@ def main(argv=None) -> int:
       return 2
   cfg = config_from_args(args, extra)
   try:
-    if args.source:
-      world = world_of(args.source, cfg, flag="--from", plant_spacing_m=args.plant_spacing)
-    else:
-      world = make_world(str(args.seed), cfg.world, kind=args.kind, flag="--seed")
-    out = check_output(args.out, "--out", directory=True)  # after a bad file: nothing made
+    # a seed, a vineyard file or a saved world, as `evaluate --world` reads it
+    world = world_of(args.world, cfg, kind=args.kind, flag="--world",
+                     plant_spacing_m=args.plant_spacing)
+    if pose is not None and _check_pose(pose, world):
+      p.error(_check_pose(pose, world))
+    # after a bad file: nothing made; never over its own --world, --policy, ... files
+    out = check_output(args.out, "--out", directory=True, writes=WRITES, inputs=[
+        (args.world, "the --world file"), (args.policy, "the --policy file"),
+        (args.config, "the --config file"), (args.robot, "the --robot file")])
   except (OutputError, ValueError, FileNotFoundError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
   spec = build_spec(world, cfg)
   model = spec.compile()
   write_text(out / "world.xml", spec.to_xml())
-  write_text(out / "world.json", json.dumps(world.to_json(cfg.robot.name), indent=1))
-  save_map(world, out / "world.png", pose=pose, robot=robot_spec(cfg.robot.name),
+  save_world(world, out / "world.json", robot=cfg.robot.name)  # what --world FILE.json reads
+  save_map(world, out / "world.png", pose=pose, robot=cfg.robot.spec,
            fovx_deg=cfg.camera.fovx_deg, max_depth_m=cfg.camera.max_depth_m)
-  name = (f"vineyard {args.source}" if args.source else
-          f"{args.kind} world seed {args.seed}")
+  if pose is not None:  # the whole set before a line says it is there
+    write_depth(model, world, cfg, pose, out)
+  name = (f"vineyard {args.world}" if Path(args.world).is_file() else
+          f"{args.kind} world seed {args.world}")
   print(f"{name} ({cfg.robot.name}): {len(world.plant_xy)} plants, "
         f"{len(world.lanes)} lanes, inter-row {world.inter_row_m:.2f} m, spacing "
         f"{world.spacing_m:.2f} m -> {out}/world.xml, world.json, world.png")
@@ -165,7 +202,6 @@ def main(argv=None) -> int:
       print(f"  lane {lane.id}: {line[-1, 0] - line[0, 0]:.1f} m long, "
             f"{world.lane_width(lane):.2f} m wide")
   if pose is not None:
-    write_depth(model, world, cfg, pose, out)
     print(f"depth at {pose} ({cfg.camera.height}x{cfg.camera.width}, fovx "
           f"{cfg.camera.fovx_deg:g} deg) -> {out}/depth.npy, depth_noisy.npy, camera.json, "
           "depth.png")
@@ -173,4 +209,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  command_main(main)

@@ -10,18 +10,22 @@ ground-truth line is the midline of its two rows over the x where both exist, sm
 over `SMOOTH_M`, a sample every `CENTERLINE_STEP_M` of x. Lanes are driven both ways.
 
 Faults (rows that turn back, cross, touch, run end to end or stand too close for the
-robot) raise `WorldFileError`, one line naming the rows by their labels.
+robot; plants nearer than `MIN_PLANT_SPACING_M`; more rows, plants or terrain than
+`mjxvine.worlds.limits` allows) raise `WorldFileError`, one line naming the rows by their
+labels.
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
 from mjxvine.config import WorldConfig
-from mjxvine.worlds.layout import (CENTERLINE_STEP_M, Lane, Vineyard, WorldFileError,
-                                   slope_plane, terrain_bumps)
+from mjxvine.worlds.layout import (CENTERLINE_STEP_M, TERRAIN_CELL_M, TERRAIN_MARGIN_M, Lane,
+                                   Vineyard, WorldFileError, slope_plane, terrain_bumps)
+from mjxvine.worlds.limits import (MAX_PLANTS, MAX_ROW_PLANTS, MAX_ROWS, MAX_TERRAIN_CELLS,
+                                   MIN_PLANT_SPACING_M)
 
 SMOOTH_M = 3.0  # moving-average window of a file lane's midline: plant jitter out, bends in
 MIN_OVERLAP_M = 2.0  # adjacent rows must run side by side at least this far
@@ -118,40 +122,65 @@ def plant_sizes(rng: np.random.Generator, cfg: WorldConfig, row_sizes: Sequence[
   return trunk, top, width
 
 
-def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_width_m: float,
-                       labels: Sequence[str] | None = None, source: str = "",
-                       origin_lonlat: tuple[float, float] | None = None,
-                       heading_rad: float | None = None, slope_pct: float = 0.0,
-                       cross_slope_pct: float = 0.0,
-                       row_sizes: Sequence[dict] | None = None, seed: int = 0) -> Vineyard:
-  """The `Vineyard` of plant rows given as (n_j, 2) arrays of plant positions (m) in a
-  local metric frame, at least two rows of at least two plants.
+class BlockFrame(NamedTuple):
+  """Where a block's rows come from and how it lies, as `Vineyard.frame` keeps it: `source`
+  (the file, in messages; "" for none), `origin_lonlat` (the local frame's tangent point,
+  degrees; None: no geographic frame), `heading_rad` (the rows' direction in the local
+  frame; None: estimated, `block_heading`), and the terrain's gradient (%) along
+  (`slope_pct`) and across (`cross_slope_pct`) the rows, on top of the config's bumps."""
+  source: str = ""
+  origin_lonlat: tuple[float, float] | None = None
+  heading_rad: float | None = None
+  slope_pct: float = 0.0
+  cross_slope_pct: float = 0.0
 
-  heading_rad: the rows' direction in that frame (default `block_heading`); slope_pct,
-  cross_slope_pct: the terrain's gradient (%) along and across the rows, on top of the
-  config's random bumps; row_sizes: optional per-row plant sizes (m), a dict per row with
-  any of "trunk_height_m", "canopy_width_m", "canopy_top_m"; what a row does not give is
-  drawn per plant from the config's ranges with `seed`. The frame (origin, heading,
-  offset) is kept in `Vineyard.frame`."""
+
+def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_width_m: float,
+                       labels: Sequence[str] | None = None,
+                       row_sizes: Sequence[dict] | None = None, seed: int = 0,
+                       frame: BlockFrame = BlockFrame()) -> Vineyard:
+  """The `Vineyard` of plant rows given as (n_j, 2) arrays of plant positions (m) in a
+  local metric frame, at least two rows of at least two plants, lying as `frame` says
+  (`BlockFrame`: source, origin, heading, slopes).
+
+  row_sizes: optional per-row plant sizes (m), a dict per row with any of
+  "trunk_height_m", "canopy_width_m", "canopy_top_m"; what a row does not give is drawn
+  per plant from the config's ranges with `seed`. The frame (origin, heading, offset,
+  slopes) is kept in `Vineyard.frame`."""
+  source, origin_lonlat, heading_rad, slope_pct, cross_slope_pct = frame
   labels = list(labels or [f"row {j + 1}" for j in range(len(rows))])
   rows = [np.asarray(r, np.float64).reshape(-1, 2) for r in rows]
+  block = source or "the block"
   if len(rows) < 2:
-    raise WorldFileError(f"{source or 'the block'}: {len(rows)} plant row(s); a lane needs "
-                         "two rows side by side")
+    raise WorldFileError(f"{block}: {len(rows)} plant row(s); a lane needs two rows side by "
+                         "side")
+  if len(rows) > MAX_ROWS:
+    raise WorldFileError(f"{block}: {len(rows)} plant rows; a block has at most {MAX_ROWS}")
+  total = sum(len(r) for r in rows)
+  if total > MAX_PLANTS:
+    raise WorldFileError(f"{block}: {total} plants; a block has at most {MAX_PLANTS}")
   for r, label in zip(rows, labels):
     if len(r) < 2:
       raise WorldFileError(f"{label}: {len(r)} plant(s); a row needs at least 2")
+    if len(r) > MAX_ROW_PLANTS:
+      raise WorldFileError(f"{label}: {len(r)} plants; a row has at most {MAX_ROW_PLANTS}")
     if not np.all(np.isfinite(r)):
       raise WorldFileError(f"{label}: a position is not a finite number")
+    gaps = np.linalg.norm(np.diff(r, axis=0), axis=1)
+    if gaps.min() < MIN_PLANT_SPACING_M:
+      k = int(np.argmax(gaps < MIN_PLANT_SPACING_M))  # the first such pair
+      raise WorldFileError(
+          f"{label}: plants {k + 1} and {k + 2} are {gaps[k] * 1000:.0f} mm apart; plants of "
+          f"a row nearer than {MIN_PLANT_SPACING_M:g} m are not vines (positions in metres?)")
   allxy = np.concatenate(rows)
   span = allxy.max(0) - allxy.min(0)
   if span.max() > MAX_BLOCK_M:
     raise WorldFileError(
-        f"{source or 'the block'}: spans {span[0] / 1000:.1f} x {span[1] / 1000:.1f} km; a "
-        f"vineyard block is at most {MAX_BLOCK_M / 1000:g} km across (swapped or projected "
-        "coordinates?)")
+        f"{block}: spans {span[0] / 1000:.1f} x {span[1] / 1000:.1f} km; a vineyard block is "
+        f"at most {MAX_BLOCK_M / 1000:g} km across (swapped or projected coordinates?)")
   heading = block_heading(rows) if heading_rad is None else heading_rad
   rows = [_rotate(r, -heading) for r in rows]
+  _check_terrain(block, np.concatenate(rows))
   order = np.argsort([r[:, 1].mean() for r in rows], kind="stable")
   rows, labels = [rows[i] for i in order], [labels[i] for i in order]
   row_sizes = [dict((row_sizes or [{}] * len(order))[i]) for i in order]
@@ -173,7 +202,7 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
   spacing = float(np.median(np.concatenate([np.linalg.norm(np.diff(r, axis=0), axis=1)
                                             for r in rows])))
   widths = np.array([l.width_m for l in lanes])
-  m = cfg.terrain_margin_m
+  m = TERRAIN_MARGIN_M
   lo, hi = plant_xy.min(0), plant_xy.max(0)
   extent = (float(lo[0] - m), float(hi[0] + m), float(lo[1] - m), float(hi[1] + m))
   terrain = terrain_bumps(rng, cfg, extent)
@@ -190,6 +219,19 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
              [float(v) for v in origin_lonlat], "heading_deg": float(np.rad2deg(heading)),
              "offset_m": offset.tolist(), "rows": labels,
              "slope_pct": float(slope_pct), "cross_slope_pct": float(cross_slope_pct)})
+
+
+def _check_terrain(block: str, xy: np.ndarray) -> None:
+  """Refuses a block whose terrain (the plants' box in the block frame and its margins)
+  would have more than `MAX_TERRAIN_CELLS` heightfield cells, before it is made."""
+  size = xy.max(0) - xy.min(0) + 2 * TERRAIN_MARGIN_M
+  cells = np.prod(np.round(size / TERRAIN_CELL_M) + 1)
+  if cells > MAX_TERRAIN_CELLS:
+    raise WorldFileError(
+        f"{block}: its ground, {size[0]:.0f} x {size[1]:.0f} m with the margins, is "
+        f"{cells / 1e6:.1f} million terrain cells of {TERRAIN_CELL_M:g} m; a block has at most "
+        f"{MAX_TERRAIN_CELLS / 1e6:g} million ({MAX_TERRAIN_CELLS * TERRAIN_CELL_M ** 2 / 1e4:g}"
+        " ha)")
 
 
 def block_to_input(world: Vineyard, xy: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 
 from mjxvine.config import Config
 from mjxvine.worlds.layout import Vineyard
-from mjxvine.worlds.robots import ROBOTS, add_robot, robot_spec
+from mjxvine.worlds.robots import ROBOTS, add_robot
 
 PARKED_Z = -100.0
 TERRAIN_BASE_M = 0.2  # heightfield base depth under its lowest point
@@ -70,15 +70,10 @@ def random_poses(model: mujoco.MjModel, world: Vineyard, n: int, seed: int = 0,
 SLOT_MULTIPLE = 16
 
 
-def plant_slots_for(worlds: Sequence[Vineyard], cfg: Config) -> int:
-  """Plant slots that fit every world of `worlds`: `world.plant_slots` if set, else the
-  largest plant count rounded up to a multiple of 16 (fewer geoms make MJX faster)."""
+def plant_slots_for(worlds: Sequence[Vineyard]) -> int:
+  """Plant slots that fit every world of `worlds`: the largest plant count rounded up to
+  a multiple of 16 (fewer geoms make MJX faster)."""
   need = max(len(w.plant_xy) for w in worlds)
-  if cfg.world.plant_slots:
-    if need > cfg.world.plant_slots:
-      raise ValueError(f"world.plant_slots = {cfg.world.plant_slots}: a world has {need} "
-                       "plants; raise it or set 0 (automatic)")
-    return cfg.world.plant_slots
   return -(-need // SLOT_MULTIPLE) * SLOT_MULTIPLE
 
 
@@ -92,13 +87,13 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
                terrain_span_m: float | None = None) -> mujoco.MjSpec:
   """The MjSpec of `world` with the robot of `cfg.robot` at the start of lane 1, forward.
 
-  `plant_slots` (default: `plant_slots_for([world], cfg)`) fixes the number of plant geom
+  `plant_slots` (default: `plant_slots_for([world])`) fixes the number of plant geom
   pairs, and `terrain_span_m` (default `terrain_span(world, cfg)`) the heightfield's
   height range, so that worlds built with the same values batch together.
   """
   spec = mujoco.MjSpec()
   # the same for all worlds (names are static); a robot file's name, not its path
-  spec.modelname = f"vineyard_{robot_spec(cfg.robot.name).name}"
+  spec.modelname = f"vineyard_{cfg.robot.spec.name}"
   spec.option.timestep = cfg.env.physics_dt
   spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
   spec.option.iterations = SOLVER_ITERATIONS
@@ -132,7 +127,7 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
                           group=0, material="soil", friction=[0.1, 0.005, 0.0001])
 
   n = len(world.plant_xy)
-  slots = plant_slots_for([world], cfg) if plant_slots is None else plant_slots
+  slots = plant_slots_for([world]) if plant_slots is None else plant_slots
   if n > slots:
     raise ValueError(f"plant_slots = {slots}: the world has {n} plants")
   ground = terrain_height(world, world.plant_xy[:, 0], world.plant_xy[:, 1])
@@ -154,7 +149,7 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
     spec.worldbody.add_geom(name=f"plant{i}_canopy", type=mujoco.mjtGeom.mjGEOM_ELLIPSOID,
                             pos=canopy_pos, size=canopy_size, rgba=[0.2, 0.5, 0.15, 1], **common)
 
-  robot = robot_spec(cfg.robot.name)
+  robot = cfg.robot.spec
   max_wheel = 1.5 * (cfg.env.v_max + cfg.env.w_max * robot.track_slip * robot.track / 2) / robot.wheel_radius
   add_robot(spec, robot, kv=cfg.robot.wheel_kv * robot.mass, friction=cfg.robot.wheel_friction,
             armature=cfg.robot.wheel_armature * robot.mass,
@@ -175,7 +170,7 @@ def build_model(world: Vineyard, cfg: Config, plant_slots: int | None = None,
 def build_models(worlds: Sequence[Vineyard], cfg: Config) -> list[mujoco.MjModel]:
   """Models of `worlds` with a common number of plant slots and terrain height range,
   ready for `batch_models`."""
-  slots = plant_slots_for(worlds, cfg)
+  slots = plant_slots_for(worlds)
   span = max(terrain_span(w, cfg) for w in worlds)
   return [build_model(w, cfg, slots, span) for w in worlds]
 

@@ -33,7 +33,9 @@ empty cell: not given). No origin; the heading is estimated. `write_csv` writes 
 block frame, so reading the file back gives the same block.
 
 Faults raise `WorldFileError`: one line naming the file, the feature (or CSV line) and
-what is wrong.
+what is wrong, names and values quoted with control characters escaped. Sizes are bounded
+before the work (`mjxvine.worlds.limits`): file bytes, JSON nesting, rows, plants per row
+and per block, LineString vertices, plant spacing, terrain.
 """
 
 from __future__ import annotations
@@ -48,15 +50,19 @@ from pathlib import Path
 import numpy as np
 
 from mjxvine.config import WorldConfig
-from mjxvine.worlds.blocks import MAX_BLOCK_M, vineyard_from_rows
+from mjxvine.robot_files import clean, short_repr
+from mjxvine.worlds.blocks import MAX_BLOCK_M, BlockFrame, vineyard_from_rows
 from mjxvine.worlds.geodesy import (WGS84_A, WGS84_E2, ecef, local_to_lonlat,  # noqa: F401
                                     lonlat_to_local, tangent_plane_error_m)
 # the writers, in their own module, are part of this one's interface
 from mjxvine.worlds.geo_write import SIZE_KEYS, write_csv, write_geojson  # noqa: F401
 from mjxvine.worlds.layout import Vineyard, WorldFileError
+from mjxvine.worlds.limits import (MAX_FILE_BYTES, MAX_JSON_DEPTH, MAX_LINE_VERTICES,
+                                   MAX_PLANTS, MAX_ROW_PLANTS, MAX_ROWS, MIN_PLANT_SPACING_M,
+                                   json_too_deep, read_bounded)
 
 PROJECTED_M = 100e3  # a "block" wider than this is coordinates in metres read as degrees
-MAX_PLANTS_PER_ROW = 100_000  # a LineString planted finer than this is a unit mistake
+MAX_NAME_CHARS = 60  # of a row's name in a message
 MAX_OFFSET_M = 10.0  # a file's offset_m may move the block this far from the default
 MJXVINE_KEYS = ("origin_lonlat", "heading_deg", "offset_m", "plant_spacing_m", "slope_pct",
                 "cross_slope_pct")
@@ -72,20 +78,36 @@ def read_vineyard(path, cfg: WorldConfig, *, robot_width_m: float,
   sizes and terrain bumps. Raises `WorldFileError` (one line: file, row, fault)."""
   path = Path(path)
   suffix = path.suffix.lower()
-  if plant_spacing_m is not None and not (_is_number(plant_spacing_m) and plant_spacing_m > 0
-                                          and math.isfinite(plant_spacing_m)):
-    raise ValueError(f"plant spacing {plant_spacing_m!r}: give a positive number of metres")
+  if plant_spacing_m is not None:
+    _spacing(plant_spacing_m, "plant spacing argument", ValueError)
   args = {"slope_pct": slope_pct, "cross_slope_pct": cross_slope_pct}
   for key, value in args.items():
     if value is not None:
       _check_slope(value, key, ValueError)
   common = dict(robot_width_m=robot_width_m, args=args, seed=seed)
-  if suffix in (".geojson", ".json"):
-    return _read_geojson(path, cfg, plant_spacing_m=plant_spacing_m, **common)
-  if suffix == ".csv":
-    return _read_csv(path, cfg, **common)
-  raise WorldFileError(f"{path}: not a vineyard file: give a .geojson (rows in WGS84 "
-                       "longitude, latitude) or a .csv (row,x_m,y_m in metres)")
+  try:
+    if suffix in (".geojson", ".json"):
+      return _read_geojson(path, cfg, plant_spacing_m=plant_spacing_m, **common)
+    if suffix == ".csv":
+      return _read_csv(path, cfg, **common)
+  except WorldFileError as e:  # the path too may hold a newline or an escape sequence
+    raise WorldFileError(_printable(str(e))) from None
+  raise WorldFileError(_printable(f"{path}: not a vineyard file: give a .geojson (rows in "
+                                  "WGS84 longitude, latitude) or a .csv (row,x_m,y_m in "
+                                  "metres)"))
+
+
+def _printable(text: str) -> str:
+  """`text` on one line: control and other unprintable characters escaped (uncut)."""
+  return text if text.isprintable() else "".join(
+      c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def _quote(v) -> str:
+  """A file's value for a message: a number as JSON writes it, else `short_repr`."""
+  if v is None or isinstance(v, (bool, float)):
+    return json.dumps(v)
+  return short_repr(v)
 
 
 def _is_number(v) -> bool:
@@ -101,16 +123,15 @@ def _slope_range() -> tuple[float, float]:
 def _check_slope(value, name: str, error=WorldFileError, where: str = "") -> float:
   lo, hi = _slope_range()
   if not (_is_number(value) and lo <= value <= hi):
-    raise error(f"{where}{name} {value!r}: give a number of percent in [{lo:g}, {hi:g}]")
+    raise error(f"{where}{name} {_quote(value)}: give a number of percent in [{lo:g}, "
+                f"{hi:g}]")
   return float(value)
 
 
 def _read_text(path: Path) -> str:
-  """The file's text (UTF-8, a byte-order mark dropped), else one-line WorldFileError."""
-  try:
-    data = path.read_bytes()
-  except OSError as e:
-    raise WorldFileError(f"{path}: cannot be read ({e.strerror or type(e).__name__})") from None
+  """The file's text (UTF-8, a byte-order mark dropped; at most `MAX_FILE_BYTES`), else
+  one-line WorldFileError."""
+  data = read_bounded(path, MAX_FILE_BYTES, WorldFileError, "vineyard file")
   try:
     return data.decode("utf-8-sig")
   except UnicodeDecodeError as e:
@@ -126,10 +147,11 @@ def _frame(world: Vineyard, names_by_label: dict, fmt: str, error_m) -> Vineyard
   return world
 
 
-def _from_rows(path: Path, rows, cfg, **kw) -> Vineyard:
-  """`blocks.vineyard_from_rows`, its messages prefixed with the file."""
+def _from_rows(path: Path, rows, cfg, frame: BlockFrame, **kw) -> Vineyard:
+  """`blocks.vineyard_from_rows`, `frame`'s source the file, its messages prefixed with
+  the file."""
   try:
-    return vineyard_from_rows(rows, cfg, source=str(path), **kw)
+    return vineyard_from_rows(rows, cfg, frame=frame._replace(source=str(path)), **kw)
   except WorldFileError as e:
     msg = str(e)
     raise WorldFileError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
@@ -138,6 +160,9 @@ def _from_rows(path: Path, rows, cfg, **kw) -> Vineyard:
 def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_m, args,
                   seed) -> Vineyard:
   text = _read_text(path)
+  if json_too_deep(text, MAX_JSON_DEPTH):
+    raise WorldFileError(f"{path}: JSON nested more than {MAX_JSON_DEPTH} deep (arrays and "
+                         "objects inside each other); GeoJSON rows need 6")
   try:
     doc = json.loads(text)
   except json.JSONDecodeError as e:
@@ -145,12 +170,14 @@ def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_
                          f"{e.colno})") from None
   except RecursionError:
     raise WorldFileError(f"{path}: not JSON (nested too deeply)") from None
+  except ValueError as e:  # a number of thousands of digits
+    raise WorldFileError(f"{path}: not JSON ({clean(str(e), 80)})") from None
   if not isinstance(doc, dict) or "type" not in doc:
     raise WorldFileError(f"{path}: JSON but not GeoJSON (no \"type\" member): a vineyard file "
                          "is a GeoJSON FeatureCollection, one Feature per plant row")
   if doc["type"] != "FeatureCollection":
-    raise WorldFileError(f"{path}: a GeoJSON {doc['type']!r}, not a FeatureCollection: give "
-                         "one Feature per plant row")
+    raise WorldFileError(f"{path}: a GeoJSON {short_repr(doc['type'])}, not a "
+                         "FeatureCollection: give one Feature per plant row")
   features = doc.get("features")
   if not isinstance(features, list):
     raise WorldFileError(f"{path}: the FeatureCollection's \"features\" is not a list")
@@ -158,9 +185,18 @@ def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_
   if len(features) < 2:
     raise WorldFileError(f"{path}: {len(features)} plant row(s) (features); a lane needs two "
                          "rows side by side")
+  if len(features) > MAX_ROWS:
+    raise WorldFileError(f"{path}: {len(features)} plant rows (features); a block has at most "
+                         f"{MAX_ROWS}")
   default_spacing = plant_spacing_m if plant_spacing_m is not None else meta.get(
       "plant_spacing_m")
-  parsed = [_feature(path, i + 1, f) for i, f in enumerate(features)]
+  parsed, points = [], 0
+  for i, f in enumerate(features):  # MultiPoint plants counted before any is made
+    parsed.append(_feature(path, i + 1, f))
+    points += len(parsed[-1]["lonlat"]) if parsed[-1]["kind"] == "MultiPoint" else 0
+    if points > MAX_PLANTS:
+      raise WorldFileError(f"{path}: more than {MAX_PLANTS} plants by {parsed[-1]['label']}; "
+                           f"a block has at most {MAX_PLANTS}")
   labels = [p["label"] for p in parsed]
   coords = [p["lonlat"] for p in parsed]
 
@@ -185,7 +221,7 @@ def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_
         f"{path}: the rows span {span[0] / 1000:.1f} x {span[1] / 1000:.1f} km (east x north),"
         f" more than one vineyard block (at most {MAX_BLOCK_M / 1000:g} km across)")
 
-  rows = []
+  rows, plants = [], 0
   for p, xy in zip(parsed, local):
     if p["kind"] == "LineString":
       spacing = p["spacing"] if p["spacing"] is not None else default_spacing
@@ -197,13 +233,17 @@ def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_
       rows.append(_plant_line(path, p, xy, spacing))
     else:
       rows.append(xy)
+    plants += len(rows[-1])
+    if plants > MAX_PLANTS:
+      raise WorldFileError(f"{path}: more than {MAX_PLANTS} plants by {p['label']}; a block "
+                           f"has at most {MAX_PLANTS}")
   error_m = tangent_plane_error_m(coords, origin)
   heading = meta.get("heading_deg")
   slopes = {k: v if v is not None else meta.get(k, 0.0) for k, v in args.items()}
-  world = _from_rows(path, rows, cfg, robot_width_m=robot_width_m, labels=labels,
-                     origin_lonlat=origin, seed=seed,
-                     heading_rad=None if heading is None else math.radians(heading),
-                     row_sizes=[p["sizes"] for p in parsed], **slopes)
+  frame = BlockFrame(origin_lonlat=origin,
+                     heading_rad=None if heading is None else math.radians(heading), **slopes)
+  world = _from_rows(path, rows, cfg, frame, robot_width_m=robot_width_m, labels=labels,
+                     seed=seed, row_sizes=[p["sizes"] for p in parsed])
   if "offset_m" in meta:
     world = _shifted(path, world, meta["offset_m"])
   return _frame(world, {p["label"]: p["name"] for p in parsed}, "geojson", error_m)
@@ -227,7 +267,7 @@ def _meta(path: Path, m) -> dict:
       v = m[key]
       if not (isinstance(v, list) and len(v) == 2 and all(_is_number(x) and math.isfinite(x)
                                                            for x in v)):
-        raise WorldFileError(f"{where}{key} must be a pair of numbers, got {json.dumps(v)}")
+        raise WorldFileError(f"{where}{key} must be a pair of numbers, got {_quote(v)}")
       out[key] = (float(v[0]), float(v[1]))
   if "origin_lonlat" in out:
     lon, lat = out["origin_lonlat"]
@@ -237,7 +277,7 @@ def _meta(path: Path, m) -> dict:
   if "heading_deg" in m:
     if not (_is_number(m["heading_deg"]) and math.isfinite(m["heading_deg"])):
       raise WorldFileError(f"{where}heading_deg must be a number (degrees from east), got "
-                           f"{json.dumps(m['heading_deg'])}")
+                           f"{_quote(m['heading_deg'])}")
     out["heading_deg"] = float(m["heading_deg"])
   if "plant_spacing_m" in m:
     out["plant_spacing_m"] = _spacing(m["plant_spacing_m"], where.rstrip("."))
@@ -247,10 +287,12 @@ def _meta(path: Path, m) -> dict:
   return out
 
 
-def _spacing(v, where: str) -> float:
+def _spacing(v, where: str, error=WorldFileError) -> float:
   if not (_is_number(v) and math.isfinite(v) and v > 0):
-    raise WorldFileError(f"{where}: plant_spacing_m {json.dumps(v)}: give a positive number of "
-                         "metres")
+    raise error(f"{where}: plant_spacing_m {_quote(v)}: give a positive number of metres")
+  if v < MIN_PLANT_SPACING_M:
+    raise error(f"{where}: plant_spacing_m {v:g}: plants nearer than {MIN_PLANT_SPACING_M:g} m "
+                "are not vines (the spacing is in metres)")
   return float(v)
 
 
@@ -266,8 +308,8 @@ def _feature(path: Path, number: int, f) -> dict:
     raise WorldFileError(f"{path}: {label}: \"properties\" must be an object or null")
   name = props.get("name")
   name = None if name is None else str(name)
-  if name is not None:
-    label = f'{label} ("{name}")'
+  if name is not None:  # escaped: a name is one line of a message, whatever it holds
+    label = f'{label} ("{clean(name, MAX_NAME_CHARS)}")'
   where = f"{path}: {label}"
   geom = f.get("geometry")
   if geom is None:
@@ -281,13 +323,17 @@ def _feature(path: Path, number: int, f) -> dict:
   coords = geom.get("coordinates")
   if not isinstance(coords, list):
     raise WorldFileError(f"{where}: the geometry has no list of coordinates")
+  most, what = ((MAX_LINE_VERTICES, "vertices of a row line") if kind == "LineString" else
+                (MAX_ROW_PLANTS, "plants of a row"))
+  if len(coords) > most:
+    raise WorldFileError(f"{where}: {len(coords)} positions; at most {most} {what}")
   lonlat = np.zeros((len(coords), 2))
   for i, pos in enumerate(coords):
     if not (isinstance(pos, list) and len(pos) in (2, 3) and all(map(_is_number, pos))):
-      raise WorldFileError(f"{where}: coordinates[{i}] {json.dumps(pos)[:40]} is not a "
+      raise WorldFileError(f"{where}: coordinates[{i}] {_quote(pos)} is not a "
                            "[longitude, latitude] pair of numbers")
     if not all(math.isfinite(v) for v in pos):
-      raise WorldFileError(f"{where}: coordinates[{i}] {json.dumps(pos)} is not finite")
+      raise WorldFileError(f"{where}: coordinates[{i}] {_quote(pos)} is not finite")
     lonlat[i] = pos[:2]
   _check_lonlat(where, lonlat)
   if len(lonlat) < 2:
@@ -302,13 +348,13 @@ def _feature(path: Path, number: int, f) -> dict:
   if missing is not None and not (isinstance(missing, list) and all(
       isinstance(k, int) and not isinstance(k, bool) for k in missing)):
     raise WorldFileError(f"{where}: missing_plants must be a list of whole numbers (0-based "
-                         f"plant indices along the row), got {json.dumps(missing)[:60]}")
+                         f"plant indices along the row), got {_quote(missing)}")
   sizes = {}
   for key in SIZE_KEYS:
     v = props.get(key)
     if v is not None:
       if not (_is_number(v) and math.isfinite(v) and v > 0):
-        raise WorldFileError(f"{where}: {key} {json.dumps(v)}: give a positive number of "
+        raise WorldFileError(f"{where}: {key} {_quote(v)}: give a positive number of "
                              "metres")
       sizes[key] = float(v)
   return {"label": label, "name": name, "kind": kind, "lonlat": lonlat, "spacing": spacing,
@@ -344,9 +390,9 @@ def _plant_line(path: Path, p: dict, xy: np.ndarray, spacing: float) -> np.ndarr
     raise WorldFileError(f"{where}: all its vertices are one point; a row needs at least 2")
   s = np.concatenate([[0.0], np.cumsum(seg)])
   count = int(np.floor(s[-1] / spacing + 1e-9)) + 1  # a plant at the end if it falls there
-  if count > MAX_PLANTS_PER_ROW:
+  if count > MAX_ROW_PLANTS:
     raise WorldFileError(f"{where}: plant_spacing_m {spacing:g} puts {count} plants along "
-                         f"{s[-1]:.0f} m (at most {MAX_PLANTS_PER_ROW}); the spacing is in "
+                         f"{s[-1]:.0f} m (at most {MAX_ROW_PLANTS} a row); the spacing is in "
                          "metres")
   at = np.arange(count) * spacing
   plants = np.stack([np.interp(at, s, xy[:, 0]), np.interp(at, s, xy[:, 1])], -1)
@@ -391,16 +437,17 @@ def _read_csv(path: Path, cfg: WorldConfig, *, robot_width_m, args, seed) -> Vin
     lacking = [c for c in ("row", "x_m", "y_m") if c not in names]
     if lacking:
       hint = " (separated by ';'? use commas)" if ";" in ",".join(header) else ""
-      raise WorldFileError(f"{path}: line {header_line}: the header {','.join(header)[:60]!r} "
-                           f"has no {', '.join(lacking)}{hint}: a plant CSV starts with "
-                           "row,x_m,y_m")
+      raise WorldFileError(f"{path}: line {header_line}: the header "
+                           f"{short_repr(','.join(header))} has no {', '.join(lacking)}"
+                           f"{hint}: a plant CSV starts with row,x_m,y_m")
     twice = sorted({c for c in names if c and names.count(c) > 1})
     if twice:
-      raise WorldFileError(f"{path}: line {header_line}: column(s) {', '.join(twice)} twice in "
-                           "the header")
+      raise WorldFileError(f"{path}: line {header_line}: column(s) "
+                           f"{clean(', '.join(twice), 80)} twice in the header")
     col = {c: names.index(c) for c in ("row", "x_m", "y_m", *SIZE_KEYS) if c in names}
     rows: dict[str, list] = {}
     sizes: dict[str, dict[str, list]] = {}
+    plants = 0
     for cells in reader:
       line = reader.line_num
       if not any(c.strip() for c in cells):
@@ -412,7 +459,18 @@ def _read_csv(path: Path, cfg: WorldConfig, *, robot_width_m, args, seed) -> Vin
       if not label:
         raise WorldFileError(f"{path}: line {line}: the row label is empty")
       x, y = (_csv_number(path, line, cells, col, k) for k in ("x_m", "y_m"))
-      rows.setdefault(label, []).append((x, y))
+      row = rows.setdefault(label, [])
+      row.append((x, y))
+      plants += 1  # the limits as the lines come: a huge file stops at the first beyond
+      if plants > MAX_PLANTS:
+        raise WorldFileError(f"{path}: line {line}: more than {MAX_PLANTS} plants; a block "
+                             f"has at most {MAX_PLANTS}")
+      if len(row) > MAX_ROW_PLANTS:
+        raise WorldFileError(f"{path}: line {line}: more than {MAX_ROW_PLANTS} plants in "
+                             f"row {short_repr(label)}; a row has at most {MAX_ROW_PLANTS}")
+      if len(rows) > MAX_ROWS:
+        raise WorldFileError(f"{path}: line {line}: more than {MAX_ROWS} rows (labels); a "
+                             f"block has at most {MAX_ROWS}")
       given = sizes.setdefault(label, {})
       for key in SIZE_KEYS:
         if key in col and cells[col[key]].strip():
@@ -430,12 +488,15 @@ def _read_csv(path: Path, cfg: WorldConfig, *, robot_width_m, args, seed) -> Vin
   if len(rows) >= 2 and span.max() < 1.0:
     raise WorldFileError(f"{path}: the plants span {span[0]:.2g} x {span[1]:.2g} m: degrees? a "
                          "CSV takes metres (x_m, y_m); longitude, latitude go in a GeoJSON file")
-  labels = [f'row "{k}"' for k in rows]
+  labels = []
+  for k in rows:  # escaped, shortened, and still one label per row
+    label = f'row "{clean(k, MAX_NAME_CHARS)}"'
+    labels.append(label if label not in labels else f"{label} ({len(labels) + 1})")
   slopes = {k: v if v is not None else 0.0 for k, v in args.items()}
-  world = _from_rows(path, [np.asarray(r) for r in rows.values()], cfg,
+  world = _from_rows(path, [np.asarray(r) for r in rows.values()], cfg, BlockFrame(**slopes),
                      robot_width_m=robot_width_m, labels=labels, seed=seed,
                      row_sizes=[{k: float(np.mean(v)) for k, v in sizes[r].items()}
-                                for r in rows], **slopes)
+                                for r in rows])
   return _frame(world, dict(zip(labels, rows)), "csv", None)
 
 
@@ -444,7 +505,9 @@ def _csv_number(path: Path, line: int, cells: list, col: dict, key: str) -> floa
   try:
     v = float(cell)
   except ValueError:
-    raise WorldFileError(f"{path}: line {line}: {key} {cell[:30]!r} is not a number") from None
+    raise WorldFileError(f"{path}: line {line}: {key} {short_repr(cell, 30)} is not a "
+                         "number") from None
   if not math.isfinite(v):
-    raise WorldFileError(f"{path}: line {line}: {key} {cell!r} is not a finite number")
+    raise WorldFileError(f"{path}: line {line}: {key} {short_repr(cell, 30)} is not a finite "
+                         "number")
   return v

@@ -76,24 +76,23 @@ class Vineyard:
     """Plant positions per plant row, (n_j, 2) each, gaps absent."""
     return [self.plant_xy[self.plant_row == j] for j in range(self.num_rows)]
 
-  def to_json(self, robot: str) -> dict:
-    """The `world.json` document of the worlds CLI."""
-    return {
-        "kind": self.kind,
-        "seed": self.seed,
-        "robot": robot,
-        "inter_row_m": self.inter_row_m,
-        "spacing_m": self.spacing_m,
-        "rows": [r.round(4).tolist() for r in self.rows()],
-        "lanes": [{
-            "id": l.id, "shape": l.shape,
-            "centerline": l.centerline.round(4).tolist(),
-            "eor_forward": l.eor_forward.round(4).tolist(),
-            "eor_reverse": l.eor_reverse.round(4).tolist(),
-            "width_m": round(self.lane_width(l), 4),
-        } for l in self.lanes],
-        **({"frame": self.frame} if self.frame else {}),
-    }
+  def to_json(self, robot: str | None = None) -> dict:
+    """The world file's document (`save_world`; the worlds CLI's world.json), which
+    `load_world` (so `--world FILE.json` of every command) reads back: every field, arrays
+    as lists, exact; each lane's width (m) written out. `robot`: the robot the CLI built
+    world.xml for, a note that `load_world` passes over."""
+    d = {"kind": self.kind, "seed": int(self.seed), **({"robot": robot} if robot else {})}
+    for f in dataclasses.fields(self):
+      v = getattr(self, f.name)
+      if f.name == "lanes":
+        v = [{g.name: getattr(l, g.name) for g in dataclasses.fields(l)}
+             | {"width_m": self.lane_width(l)} for l in v]
+        v = [{k: (x.tolist() if isinstance(x, np.ndarray) else x) for k, x in l.items()}
+             for l in v]
+      elif f.name == "frame" and v is None:
+        continue
+      d[f.name] = v.tolist() if isinstance(v, np.ndarray) else v
+    return d
 
   def lane_width(self, lane: Lane) -> float:
     """The distance (m) between the two rows of `lane`."""
@@ -154,16 +153,22 @@ def _varied_offsets(rng: np.random.Generator, num_rows: int, length: float,
   return [row(j) for j in range(num_rows)]
 
 
+TERRAIN_BUMP_M = 1.0  # grid of the terrain's random bumps
+TERRAIN_CELL_M = 0.25  # heightfield resolution
+TERRAIN_MARGIN_M = 4.0  # terrain beyond the outer plants
+
+
 def terrain_bumps(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
-  """Heights (m) over `extent`: bumps of +- amplitude on a `terrain_bump_m` grid, bilinearly refined to the cell size."""
+  """Heights (m) over `extent`: bumps of +- amplitude on a `TERRAIN_BUMP_M` grid,
+  bilinearly refined to `TERRAIN_CELL_M` cells."""
   xmin, xmax, ymin, ymax = extent
-  ncol = int(round((xmax - xmin) / cfg.terrain_cell_m)) + 1
-  nrow = int(round((ymax - ymin) / cfg.terrain_cell_m)) + 1
-  bx = int(np.ceil((xmax - xmin) / cfg.terrain_bump_m)) + 1
-  by = int(np.ceil((ymax - ymin) / cfg.terrain_bump_m)) + 1
+  ncol = int(round((xmax - xmin) / TERRAIN_CELL_M)) + 1
+  nrow = int(round((ymax - ymin) / TERRAIN_CELL_M)) + 1
+  bx = int(np.ceil((xmax - xmin) / TERRAIN_BUMP_M)) + 1
+  by = int(np.ceil((ymax - ymin) / TERRAIN_BUMP_M)) + 1
   coarse = rng.uniform(-cfg.terrain_amplitude_m, cfg.terrain_amplitude_m, size=(by, bx))
-  u = np.linspace(0, (xmax - xmin) / cfg.terrain_bump_m, ncol)
-  v = np.linspace(0, (ymax - ymin) / cfg.terrain_bump_m, nrow)
+  u = np.linspace(0, (xmax - xmin) / TERRAIN_BUMP_M, ncol)
+  v = np.linspace(0, (ymax - ymin) / TERRAIN_BUMP_M, nrow)
   i0 = np.minimum(np.floor(v).astype(int), by - 2)
   j0 = np.minimum(np.floor(u).astype(int), bx - 2)
   fv, fu = (v - i0)[:, None], (u - j0)[None, :]
@@ -302,7 +307,7 @@ def world_extent(cfg: WorldConfig) -> tuple[float, float, float, float]:
   worlds of a config share one heightfield shape (and so batch into one mjx.Model)."""
   length = max(cfg.train_length_m, cfg.test_length_m)
   half_y = (max(cfg.train_rows, len(TEST_LANE_SHAPES) + 1) - 1) / 2 * cfg.inter_row_m[1]
-  m = cfg.terrain_margin_m
+  m = TERRAIN_MARGIN_M
   return (-m, length + m, -half_y - m, half_y + 2 * cfg.curve_amplitude_m + m)
 
 
@@ -311,18 +316,35 @@ class WorldFileError(ValueError):
 
 
 _OPTIONAL = {"width_m", "frame"}  # fields that older world files lack
+_NOTES = {"robot"}  # what a world file may say besides the world (`Vineyard.to_json`)
 MAX_SEED = 2**32 - 1  # numpy's seeds: a larger one would silently wrap
 
 
-def save_world(world: Vineyard, path: str | Path) -> None:
-  """Saves every array of a world to JSON (exact float64 round trip), atomically."""
+def save_world(world: Vineyard, path: str | Path, robot: str | None = None) -> None:
+  """Saves a world as `Vineyard.to_json` has it (exact float64 round trip), atomically:
+  the format of the worlds CLI's world.json, which `load_world` reads."""
   from mjxvine import atomic
-  d = {f.name: getattr(world, f.name) for f in dataclasses.fields(world)}
-  d["lanes"] = [{f.name: (v.tolist() if isinstance(v, np.ndarray) else v)
-                 for f in dataclasses.fields(l) for v in [getattr(l, f.name)]}
-                for l in world.lanes]
-  d = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in d.items()}
-  atomic.write_text(path, json.dumps(d))
+  d = world.to_json(robot)  # a field a line, to skim it; numbers as repr writes them
+  atomic.write_text(path, "{\n" + ",\n".join(
+      f"{json.dumps(k)}: {json.dumps(v, separators=(',', ':'))}" for k, v in d.items())
+      + "\n}\n")
+
+
+def _check_counts(path: Path, d: dict) -> None:
+  """Refuses a world with more plants, lanes or terrain cells than a vineyard file may
+  give (`mjxvine.worlds.limits`): building it would take minutes or the memory."""
+  from mjxvine.worlds import limits
+
+  def count(name, nested=False):
+    v = d.get(name)
+    if not isinstance(v, list):
+      return 0
+    return sum(len(r) for r in v if isinstance(r, list)) if nested else len(v)
+  for what, n, most in (("plants", count("plant_xy"), limits.MAX_PLANTS),
+                        ("lanes", count("lanes"), limits.MAX_ROWS - 1),
+                        ("terrain cells", count("terrain", True), limits.MAX_TERRAIN_CELLS)):
+    if n > most:
+      raise WorldFileError(f"{path}: {n} {what}; a world has at most {most}")
 
 
 def _array(path: Path, name: str, value, shape: tuple) -> np.ndarray:
@@ -340,20 +362,44 @@ def _array(path: Path, name: str, value, shape: tuple) -> np.ndarray:
 
 
 def load_world(path: str | Path) -> Vineyard:
-  """Loads a world saved by `save_world`. A file that is not one (unreadable, not JSON,
-  fields missing, misshapen or non-finite arrays) raises WorldFileError naming it."""
-  path = Path(path)
+  """Loads a world saved by `save_world` or written by the worlds CLI (world.json). A
+  file that is not one (unreadable, not JSON, fields missing, misshapen or non-finite
+  arrays, more than `mjxvine.worlds.limits` allows) raises WorldFileError, one line
+  naming it."""
   try:
-    d = json.loads(path.read_text(encoding="utf-8"))
+    return _load_world(Path(path))
+  except WorldFileError as e:  # a path or a field's value may hold control characters
+    text = str(e)
+    raise WorldFileError(text if text.isprintable() else "".join(
+        c if c.isprintable() else repr(c)[1:-1] for c in text)) from None
+
+
+def _load_world(path: Path) -> Vineyard:
+  from mjxvine.worlds import limits
+  data = limits.read_bounded(path, limits.MAX_WORLD_FILE_BYTES, WorldFileError, "world file")
+  try:
+    text = data.decode("utf-8")
+    if limits.json_too_deep(text):
+      raise WorldFileError(f"{path}: not a world file (JSON nested more than "
+                           f"{limits.MAX_JSON_DEPTH} deep)")
+    d = json.loads(text)
   except (UnicodeDecodeError, json.JSONDecodeError) as e:
     raise WorldFileError(f"{path}: not a world file (not JSON: {e})") from None
-  except OSError as e:
-    raise WorldFileError(f"{path}: cannot be read ({e.strerror})") from None
+  except (RecursionError, ValueError) as e:  # (a number of thousands of digits)
+    if isinstance(e, WorldFileError):
+      raise
+    raise WorldFileError(f"{path}: not a world file (not JSON: {str(e)[:80]})") from None
   fields = {f.name for f in dataclasses.fields(Vineyard)} - _OPTIONAL
+  if isinstance(d, dict) and {"rows", "lanes", "robot"} <= set(d) and "plant_xy" not in d:
+    raise WorldFileError(f"{path}: a world description of an older python -m mjxvine.worlds "
+                         "(no plant arrays); write the world again with it")
   if not isinstance(d, dict) or not fields <= set(d):
     missing = sorted(fields - set(d)) if isinstance(d, dict) else ["everything"]
     raise WorldFileError(f"{path}: not a world file (python -m mjxvine.worlds writes one); "
                          f"missing {', '.join(missing)}")
+  for name in _NOTES:
+    d.pop(name, None)
+  _check_counts(path, d)
   lane_fields = {f.name for f in dataclasses.fields(Lane)} - _OPTIONAL
   if not isinstance(d["lanes"], list) or not d["lanes"] or not all(
       isinstance(l, dict) and lane_fields <= set(l) <= lane_fields | _OPTIONAL
@@ -387,4 +433,6 @@ def load_world(path: str | Path) -> Vineyard:
   except (TypeError, ValueError, KeyError) as e:
     if isinstance(e, WorldFileError):
       raise
-    raise WorldFileError(f"{path}: not a world file ({type(e).__name__}: {e})") from None
+    from mjxvine.robot_files import clean  # (int("x" * 10**6) quotes the whole value)
+    raise WorldFileError(f"{path}: not a world file ({type(e).__name__}: "
+                         f"{clean(str(e), 120)})") from None

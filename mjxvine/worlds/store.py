@@ -9,11 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mjxvine.config import Config, WorldConfig, robot_spec
+from mjxvine.config import Config, WorldConfig
 from mjxvine.worlds.build import terrain_height
-from mjxvine.worlds.layout import MAX_SEED, Vineyard, generate_world, load_world
+from mjxvine.worlds.layout import (MAX_SEED, TERRAIN_CELL_M, Vineyard, generate_world,
+                                   load_world)
 
 DATA_DIR = Path(__file__).parent / "data"
+TEST_WORLD_SEED = 0  # "test world 0": the one every result is measured on
 TEST_WORLD_FILE = DATA_DIR / "test_world_seed0.json"
 
 
@@ -25,7 +27,7 @@ def load_test_world(cfg: WorldConfig) -> Vineyard:
   """
   if cfg == WorldConfig() and TEST_WORLD_FILE.is_file():
     return load_world(TEST_WORLD_FILE)
-  return generate_world("test", cfg.test_seed, cfg)
+  return generate_world("test", TEST_WORLD_SEED, cfg)
 
 
 VINEYARD_SUFFIXES = (".geojson", ".csv")
@@ -53,7 +55,7 @@ def make_world(spec: str, cfg: WorldConfig, kind: str = "test", flag: str = "--w
     raise ValueError(f"{flag} {spec!r}: give a seed or a world .json file") from None
   if not 0 <= seed <= MAX_SEED:
     raise ValueError(f"{flag} {spec}: a seed is a whole number from 0 to {MAX_SEED}")
-  if kind == "test" and seed == cfg.test_seed:
+  if kind == "test" and seed == TEST_WORLD_SEED:
     return load_test_world(cfg)
   return generate_world(kind, seed, cfg)
 
@@ -70,7 +72,7 @@ def _is_geojson(path: Path) -> bool:
 
 def world_of(spec: str, cfg: Config, **kw) -> Vineyard:
   """`make_world` for a whole config: vineyard files' lanes checked for its robot."""
-  return make_world(spec, cfg.world, robot_width_m=robot_spec(cfg.robot.name).width, **kw)
+  return make_world(spec, cfg.world, robot_width_m=cfg.robot.spec.width, **kw)
 
 
 def train_files(cfg: WorldConfig) -> list[str]:
@@ -88,7 +90,7 @@ def pool_worlds(cfg: Config) -> list[Vineyard]:
   if not files:
     return worlds
   worlds += [world_of(f, cfg, flag="world.train_files") for f in files]
-  return common_terrain_grid(worlds, cfg.world.terrain_cell_m)
+  return common_terrain_grid(worlds, TERRAIN_CELL_M)
 
 
 def common_terrain_grid(worlds: list[Vineyard], cell_m: float) -> list[Vineyard]:
