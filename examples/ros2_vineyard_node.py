@@ -55,6 +55,7 @@ IMU yaw itself (`NumpyPolicy.yaw_input`).
 
 from __future__ import annotations
 
+import signal
 import sys
 
 import rclpy
@@ -178,20 +179,33 @@ class VineyardNode(Node, DriveLogic):
       self.fault("timer", e)
 
 
+def _stop_on(signum, frame):
+  raise KeyboardInterrupt  # the node publishes its stop while ROS is still up
+
+
 def main(args=None) -> int:
-  rclpy.init(args=args)
+  try:  # rclpy's own SIGINT handler would shut ROS down before the node could say stop
+    from rclpy.signals import SignalHandlerOptions
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+  except ImportError:  # rclpy before Humble
+    rclpy.init(args=args)
   try:
     node = VineyardNode()
   except (PolicyError, ValueError) as e:  # a bad policy file or parameter: never start
     print(f"ros2_vineyard_node: {e}", file=sys.stderr)
     rclpy.try_shutdown()
     return 2
+  signal.signal(signal.SIGINT, _stop_on)
+  signal.signal(signal.SIGTERM, _stop_on)
   try:
     rclpy.spin(node)
   except KeyboardInterrupt:
     pass
   finally:
-    node.cmd.publish(Twist())  # stop
+    try:
+      node.cmd.publish(Twist())  # stop
+    except Exception as e:  # noqa: BLE001 - ROS already down: nothing can be sent
+      print(f"ros2_vineyard_node: could not publish the stop ({e})", file=sys.stderr)
     node.destroy_node()
     rclpy.try_shutdown()
   return 0

@@ -30,11 +30,12 @@ from typing import Callable, Iterator, Sequence
 
 class _Write:
   """One `atomic_path` write: `committing` is set just before the rename, so that a stop
-  at any point tells a new file at `path` (the temporary file gone) from an untouched one."""
-  __slots__ = ("path", "tmp", "committing")
+  at any point tells a new file at `path` (the temporary file gone) from an untouched one;
+  `replaces`: a file was there before (a stop leaves the new one: the old is gone)."""
+  __slots__ = ("path", "tmp", "committing", "replaces")
 
   def __init__(self, path: Path, tmp: Path):
-    self.path, self.tmp, self.committing = path, tmp, False
+    self.path, self.tmp, self.committing, self.replaces = path, tmp, False, False
 
 
 _writes: list[_Write] = []  # in flight, and (while `track_outputs`) done
@@ -127,8 +128,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
   try:
     yield tmp
     if tmp.exists():
+      # a file it replaces is the user's: a stop keeps the new one rather than none
+      write.replaces = path.exists()
       write.committing = True  # before the rename: a stop right after it sees a new file
-      os.replace(tmp, path)
+      try:
+        os.replace(tmp, path)
+      except BaseException:
+        write.committing = False  # nothing was written there
+        raise
   finally:
     with contextlib.suppress(FileNotFoundError):
       tmp.unlink()
@@ -162,7 +169,7 @@ def discard_partial(outputs: bool = True) -> list[Path]:
     try:
       if write.tmp.exists():  # not renamed yet: the target is as it was
         write.tmp.unlink()
-      elif write.committing and outputs:
+      elif write.committing and outputs and not write.replaces:
         write.path.unlink()
         removed.append(write.path)
     except FileNotFoundError:
@@ -178,6 +185,23 @@ def discard_partial(outputs: bool = True) -> list[Path]:
 # ---------------------------------------------------------------------- a command's stop
 STOP_GRACE_S = 3.0  # a command not ended this long after a signal is ended at once
 AGAIN_S = 0.5       # ... and this long after a second one
+# the trainer's chunks: a first signal lets the chunk, its evaluation and its checkpoint
+# end (a stop between chunks keeps all of it); a second one, or this long, ends it at once
+CHUNK_STOP_GRACE_S = 120.0
+
+
+def set_stop_grace(seconds: float) -> float:
+  """Sets how long the running command has, after a first signal, to stop by itself;
+  returns what it was (`STOP_GRACE_S` outside a command)."""
+  if _command is None:
+    return STOP_GRACE_S
+  previous, _command.grace_s = _command.grace_s, seconds
+  return previous
+
+
+def stop_grace() -> float:
+  """How long the running command has, after a first signal, to stop by itself."""
+  return STOP_GRACE_S if _command is None else _command.grace_s
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 # to the watchdog (no signal has these numbers): raise the signal again soon; stand down
 _AGAIN, _CLOSE = 255, 254
@@ -412,6 +436,8 @@ def run_command(main: Callable[[], int | None], keep_outputs: bool = False,
     _command.install()
   command = _command
   command.keep_outputs, command.grace_s = keep_outputs, grace_s
+  _writes.clear()  # an earlier command's files are not this one's to remove
+  _made_dirs.clear()
   track_outputs = not keep_outputs
   try:
     command.running = True
@@ -432,6 +458,8 @@ def run_command(main: Callable[[], int | None], keep_outputs: bool = False,
   finally:
     command.stopping = True
     track_outputs = False
+    _writes.clear()
+    _made_dirs.clear()
     if restore:
       command.uninstall()
       _command = None

@@ -37,12 +37,11 @@ No test world is driven. The library is `mjxvine.evaluation.choice`.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from mjxvine.atomic import command_main
-from mjxvine.cli import CommandParser
-from mjxvine.config import ConfigError, add_config_args, load_config
+from mjxvine.cli import CommandParser, input_error
+from mjxvine.config import ConfigError, add_config_args, load_config, load_run_config
 from mjxvine.rundir import RunDirBusy, RunLock
 
 
@@ -68,7 +67,8 @@ def main(argv=None, prog: str = "python -m mjxvine.choose") -> int:
   try:
     if not (run_dir / "config.yaml").is_file():
       raise FileNotFoundError(f"--policy {run_dir}: no config.yaml (not a run directory)")
-    cfg = load_config(args.config or str(run_dir / "config.yaml"), args.overrides)
+    cfg = (load_config(args.config, args.overrides) if args.config else
+           load_run_config(run_dir / "config.yaml", args.overrides))
     # the run's one writer, as the trainer is (its own choice writes the same files)
     with RunLock(run_dir):
       from mjxvine.training.iteration import sweep_members  # (jax: after the cheap checks)
@@ -80,12 +80,8 @@ def main(argv=None, prog: str = "python -m mjxvine.choose") -> int:
       chosen = (args.member,) if args.member is not None and count > 1 else None
       for k in chosen or choice.member_ids(count):
         choice.select(cfg, run_dir, member=k)
-  except ConfigError as e:
-    print(f"config error: {e}", file=sys.stderr)
-    return 2
-  except (FileNotFoundError, ValueError, RunDirBusy) as e:
-    print(f"error: {e}", file=sys.stderr)
-    return 2
+  except (ConfigError, FileNotFoundError, ValueError, RunDirBusy) as e:
+    return input_error(e)
   return 0
 
 

@@ -50,6 +50,7 @@ def int_range(lo: int, hi: int):
 
 MAX_MEMBER = 1023  # members are 0-based, at most config.MAX_MEMBERS of them
 member_type = int_range(0, MAX_MEMBER)  # --member K of evaluate, view, export
+seed_type = int_range(0, 2**31 - 1)  # --seed N of every command, as train.seed
 
 
 def member_error(policy: str, member: int | None) -> str | None:
@@ -83,3 +84,27 @@ ROBOT_HELP = ("a built-in robot (jackal, husky) or a robot file (docs/your-robot
 # ... of the commands that drive a trained policy (evaluate, view)
 ROBOT_POLICY_HELP = (ROBOT_HELP + "; its camera and speed limits may not change a trained "
                      "policy's")
+
+POLICY_HELP = ("oracle, random, a run dir or a .npz policy file; a run dir's config.yaml "
+               "(an .npz's metadata) gives the camera, networks and env options, "
+               "--config/--set only override")
+
+
+def add_policy_args(p: argparse.ArgumentParser, which: tuple[str, ...]) -> None:
+  """--policy, --which (of `which`), --member and --robot: the flags of the commands that
+  drive a trained policy (evaluate, view)."""
+  p.add_argument("--policy", required=True, metavar="RUN|FILE", help=POLICY_HELP)
+  p.add_argument("--which", choices=which, default="best", help=WHICH_HELP)
+  p.add_argument("--member", type=member_type, default=None, metavar="K", help=MEMBER_HELP)
+  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml", help=ROBOT_POLICY_HELP)
+
+
+def input_error(e: Exception, stream=None) -> int:
+  """A refused input as one line on stderr ("config error: ..." for a config, "error: ..."
+  otherwise); returns the exit status, 2."""
+  import sys  # pylint: disable=import-outside-toplevel
+  from mjxvine.config import ConfigError  # config reads the robot files
+  prefix = "config error" if isinstance(e, ConfigError) else "error"
+  print(f"{prefix}: {e}", file=stream or sys.stderr)
+  return 2
+

@@ -383,13 +383,15 @@ def _recorded(base: dict) -> dict:
     section, name = key.split(".")
     if isinstance(out.get(section), dict) and name in out[section]:
       value = out[section].pop(name)
-      if value != off and not (isinstance(off, list) and list(value or ()) == off):
-        raise ConfigError(f"{key} = {short_repr(value)}: the run was trained with a key removed "
-                          f"after {RELEASE_WITH_REMOVED}, which reproduces it")
+      if value != off and not (isinstance(value, (list, tuple)) and list(value) == off):
+        raise ConfigError(f"{key} = {short_repr(value)}: the run was trained with a key "
+                          f"removed after {RELEASE_WITH_REMOVED}, which reproduces it")
   for key, new in MOVED_KEYS.items():
     (section, name), (new_section, new_name) = key.split("."), new.split(".")
     if isinstance(out.get(section), dict) and name in out[section]:
-      out.setdefault(new_section, {}).setdefault(new_name, out[section].pop(name))
+      value = out[section].pop(name)
+      if isinstance(out.setdefault(new_section, {}), dict):
+        out[new_section].setdefault(new_name, value)
   return out
 
 
@@ -583,6 +585,13 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (),
   cfg = _build(Config, data, "")
   _check_cross_fields(cfg)
   return cfg
+
+
+def load_run_config(path: str | Path, overrides: Sequence[str] = ()) -> Config:
+  """A run's own recorded config.yaml (`path`) with `overrides`: read as a recorded config
+  (`load_config(base=...)`), so that a run of an earlier release, whose file lists keys
+  since removed at the values that kept them off, still loads."""
+  return load_config(None, overrides, read_yaml(path))
 
 
 def to_dict(cfg) -> dict:

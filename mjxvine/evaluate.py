@@ -33,8 +33,8 @@ import sys
 from pathlib import Path
 
 from mjxvine.atomic import check_output
-from mjxvine.cli import (MEMBER_HELP, ROBOT_POLICY_HELP, WHICH_HELP, CommandParser, key_type,
-                         member_error, member_type)
+from mjxvine.cli import (CommandParser, add_policy_args, input_error, key_type, member_error,
+                         seed_type)
 from mjxvine.config import ConfigError, add_config_args, enable_compile_cache
 # One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
 from mjxvine.deploy import PolicyError
@@ -63,13 +63,7 @@ def _size(text: str) -> tuple[int, int]:
 def parser() -> argparse.ArgumentParser:
   """The command line's flags."""
   p = CommandParser(prog="python -m mjxvine.evaluate", description=__doc__)
-  p.add_argument("--policy", required=True, metavar="RUN|FILE",
-                 help="oracle, random, a run dir or a .npz policy file; a run "
-                 "dir's config.yaml (an .npz's metadata) gives the camera, networks and env "
-                 "options, --config/--set only override")
-  p.add_argument("--which", choices=WHICH, default="best", help=WHICH_HELP)
-  p.add_argument("--member", type=member_type, default=None, metavar="K", help=MEMBER_HELP)
-  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml", help=ROBOT_POLICY_HELP)
+  add_policy_args(p, WHICH)
   p.add_argument("--noise", type=key_type("eval.noise_factor"), default=None,
                  help="depth noise factor, 0-100 (default: the config's eval.noise_factor, "
                  "which it stands for)")
@@ -88,7 +82,7 @@ def parser() -> argparse.ArgumentParser:
                  help="paper: the paper's whole evaluation (test worlds 0-3 with --runs, "
                       "default 5; the noise and robot tests) in one report "
                       "(mjxvine.evaluation.suite)")
-  p.add_argument("--seed", type=int, default=0, metavar="N",
+  p.add_argument("--seed", type=seed_type, default=0, metavar="N",
                  help="seed of the runs' random draws: their depth noise (the runs of a "
                       "lane differ by it) and the random policy's actions; the starts are "
                       "fixed (default 0)")
@@ -204,8 +198,7 @@ def run(args) -> int:
       cfg, source = policy_config(args.policy, args.config, [*extra, *args.overrides],
                                   args.which)
     except ConfigError as e:
-      print(f"config error: {e}", file=sys.stderr)
-      return 2
+      return input_error(e)
     world = world_of(args.world or str(TEST_WORLD_SEED), cfg)
     if args.video_lanes:  # a bad lane is one line before anything is built
       parse_lanes(args.video_lanes, len(world.lanes))
@@ -222,8 +215,7 @@ def run(args) -> int:
     else:
       run_tables(cfg, source, args, world, out)
   except (PolicyError, FileNotFoundError, ValueError, RenderError) as e:  # OutputError too
-    print(f"error: {e}", file=sys.stderr)
-    return 2
+    return input_error(e)
   return 0
 
 

@@ -46,15 +46,15 @@ def parser() -> argparse.ArgumentParser:
                  help="a run dir, its checkpoints/ dir or one orbax checkpoint step (see "
                       "--which); with --format onnx also an exported .npz policy file")
   p.add_argument("--which", choices=WHICH, default="best", help=WHICH_HELP)
-  p.add_argument("--format", choices=FORMATS, default=None,
-                 help="npz (numpy-only mjxvine.deploy) or onnx (needs the onnx package); "
-                      "default: --out's suffix, else npz")
+  p.add_argument("--member", type=member_type, default=None, metavar="K", help=MEMBER_HELP)
   p.add_argument("--out", default=None, metavar="FILE",
                  help="output file, .npz or .onnx as the format (default RUN_DIR/policy.npz "
                       "or RUN_DIR/policy.onnx; for an .npz input, the same name with .onnx); "
                       "never an input (the policy file, the run directory's files); written "
                       "whole or not at all, so a failed export keeps the previous file")
-  p.add_argument("--member", type=member_type, default=None, metavar="K", help=MEMBER_HELP)
+  p.add_argument("--format", choices=FORMATS, default=None,
+                 help="npz (numpy-only mjxvine.deploy) or onnx (needs the onnx package); "
+                      "default: --out's suffix, else npz")
   p.add_argument("--preprocess", action="store_true",
                  help="onnx: in the graph, map invalid depth (NaN, inf, <= 0) to the "
                       "maximum range (or --invalid-depth) and clip to [0, max_depth]")

@@ -20,7 +20,7 @@ import json
 import sys
 from pathlib import Path
 
-from mjxvine.cli import CommandParser, int_range
+from mjxvine.cli import CommandParser, int_range, seed_type
 from mjxvine.deploy.latency import numpy_latency, onnx_latency
 from mjxvine.deploy.numpy_policy import PolicyError, set_blas_threads
 
@@ -43,7 +43,7 @@ def parser() -> argparse.ArgumentParser:
                       "numpy's BLAS threads (default: as numpy started, OPENBLAS_NUM_THREADS)")
   p.add_argument("--no-spinning", action="store_true",
                  help="onnxruntime: worker threads sleep instead of spinning")
-  p.add_argument("--seed", type=int, default=0, metavar="N",
+  p.add_argument("--seed", type=seed_type, default=0, metavar="N",
                  help="seed of the random depth images and states the policy is called on "
                       "(default 0)")
   return p

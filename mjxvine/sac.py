@@ -199,8 +199,7 @@ def _as_recorded(updates: Params, step: jax.Array) -> Params:
   """Adam's step times a run-time 1 (from the step counter, which XLA cannot fold): the
   runs on record scaled it by a learning-rate factor, and with the same multiply XLA
   fuses the update as they were trained, so that they train again bit for bit (a
-  constant 1 is folded away, and the step then differs in its last bits). Drop it with
-  the next re-measured recipe."""
+  constant 1 is folded away, and the step then differs in its last bits)."""
   one = jnp.where(step >= 0, jnp.float32(1.0), jnp.float32(0.0))
   return jax.tree.map(lambda u: u * one, updates)
 

@@ -30,7 +30,7 @@ import jax
 from mjxvine.atomic import OutputError, check_output, command_main
 from mjxvine.config import (DEFAULT_CONFIG_NAME, PACKAGED_CONFIGS, Config, ConfigError,
                             add_config_args, config_from_args, enable_compile_cache,
-                            resolve_config_path)
+                            load_run_config, resolve_config_path)
 from mjxvine.cli import CommandParser, key_type
 from mjxvine.formatting import first_line
 from mjxvine.rundir import (EXIT_NON_FINITE, EXIT_USAGE, EXIT_WRITE, Interrupted,
@@ -101,7 +101,10 @@ def resumed_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
     p.error(f"--resume {run_dir}: no config.yaml there (not a run directory)")
   # the same run or a refusal (exit 2): `train` compares it with the config it started
   # with (run.json) before anything is built
-  cfg = config_from_args(argparse.Namespace(config=str(resolved), overrides=args.overrides))
+  try:
+    cfg = load_run_config(resolved, args.overrides)
+  except ConfigError as e:
+    p.exit(2, f"config error: {e}\n")
   if args.seed is not None or args.num_seeds is not None or args.sweep:
     p.error("--resume: the seed, seeds and sweep come from the run's config.yaml")
   if args.out:

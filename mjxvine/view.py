@@ -23,8 +23,8 @@ import os
 import sys
 import time
 
-from mjxvine.cli import (MEMBER_HELP, ROBOT_POLICY_HELP, WHICH_HELP, CommandParser, key_type,
-                         member_error, member_type)
+from mjxvine.cli import (CommandParser, add_policy_args, input_error, key_type, member_error,
+                         seed_type)
 from mjxvine.rundir.checkpoints import WHICH
 
 NO_DISPLAY = ("no display: the interactive viewer needs a desktop session (DISPLAY or "
@@ -53,13 +53,7 @@ def _world(spec: str, cfg):
 def parser() -> argparse.ArgumentParser:
   """The command line's flags."""
   p = CommandParser(prog="python -m mjxvine.view", description=__doc__)
-  p.add_argument("--policy", required=True, metavar="RUN|FILE",
-                 help="oracle, random, a run dir or a .npz policy file; a run dir's "
-                      "config.yaml (an .npz's metadata) gives the camera, networks and env "
-                      "options, --config/--set only override")
-  p.add_argument("--which", choices=WHICH, default="best", help=WHICH_HELP)
-  p.add_argument("--member", type=member_type, default=None, metavar="K", help=MEMBER_HELP)
-  p.add_argument("--robot", default=None, metavar="NAME|FILE.yaml", help=ROBOT_POLICY_HELP)
+  add_policy_args(p, WHICH)
   p.add_argument("--world", default="test", metavar="test|train|SEED|FILE",
                  help="test (default), train, a test-world seed, a world .json file or a "
                       "vineyard file (.geojson, .csv: docs/your-vineyard.md)")
@@ -67,7 +61,7 @@ def parser() -> argparse.ArgumentParser:
   p.add_argument("--noise", type=key_type("eval.noise_factor"), default=None,
                  help="depth noise factor, 0-100 (default: the config's eval.noise_factor, "
                  "which it stands for)")
-  p.add_argument("--seed", type=int, default=0, metavar="N",
+  p.add_argument("--seed", type=seed_type, default=0, metavar="N",
                  help="seed of the episodes' random draws: their depth noise and the random "
                       "policy's actions, new for each repeat of the lane; the start is fixed "
                       "(default 0)")
@@ -151,12 +145,8 @@ def main(argv=None) -> int:
   enable_compile_cache()
   try:
     env, policy, name, source, world, (lane, direction) = load(args)
-  except ConfigError as e:
-    print(f"config error: {e}", file=sys.stderr)
-    return 2
-  except (PolicyError, FileNotFoundError, ValueError) as e:
-    print(f"error: {e}", file=sys.stderr)
-    return 2
+  except (ConfigError, PolicyError, FileNotFoundError, ValueError) as e:
+    return input_error(e)
   print(f"{name} (config: {source}) on lane {lane}{direction} of the {world.kind} world; "
         f"compiling the step (a minute on a CPU)...", file=sys.stderr, flush=True)
   return watch(env, policy, lane, direction, args.seed, args.once)

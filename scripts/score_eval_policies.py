@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from mjxvine import networks as nw  # noqa: E402
 from mjxvine.evaluation import choice, paper, policies, starts  # noqa: E402
-from mjxvine.config import load_config, replace  # noqa: E402
+from mjxvine.config import load_run_config, replace  # noqa: E402
 from mjxvine.env import training_env  # noqa: E402
 from mjxvine.worlds import make_world  # noqa: E402
 
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   worlds = [int(s) for s in args.worlds.split(",")]
   noise_factors = [float(s) for s in args.noise.split(",") if s]
-  cfg = load_config(args.run / "config.yaml")
+  cfg = load_run_config(args.run / "config.yaml")
   files = sorted(choice.kept_policies(args.run).items())
   out_file = args.run / "eval_policies" / "scores.jsonl"
   only = {int(s) for s in args.steps.split(",") if s}

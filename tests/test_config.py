@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import pytest
 
 from mjxvine.config import ConfigError, config_hash, load_config, to_yaml
@@ -158,3 +160,19 @@ def test_train_without_config_uses_the_packaged_default(tmp_path, monkeypatch, c
   assert train_mod.main(["--out", "r"]) == 0
   assert capsys.readouterr().out.startswith(f"config: {train_mod.DEFAULT_CONFIG} (the default")
   assert seen["cfg"] == load_config(train_mod.DEFAULT_CONFIG)
+
+
+def test_a_run_of_the_earlier_release_loads_as_its_own_config():
+  """A run's config.yaml written by 0.2.0 (every key, removed ones at their off values)
+  loads as a run's own config (`load_run_config`: resume, choose), not as a config file."""
+  from mjxvine.config import load_run_config
+  record = Path(__file__).resolve().parents[1] / "docs/results/default-run/config.yaml"
+  assert "terrain_bump_m" in record.read_text()  # a 0.2.0 record
+  with pytest.raises(ConfigError, match="removed"):
+    load_config(record)
+  cfg = load_run_config(record, ["train.total_env_steps=100"])
+  assert cfg.env.v_min == 0.3 and cfg.train.total_env_steps == 100
+  with pytest.raises(ConfigError, match="^env.start_along = 5: "):
+    load_config(None, (), {"env": {"start_along": 5}})
+  with pytest.raises(ConfigError, match="^train: expected a mapping"):
+    load_config(None, (), {"sac": {"conv_impl": "xla"}, "train": 3})

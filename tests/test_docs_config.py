@@ -20,7 +20,7 @@
   * "`FILE.yaml` (seed N, its default" and "`FILE.yaml` with its default seed, N":
     that config's train.seed.
   Not read: defaults said in words ("relative to the heading by default", "seed 0 by
-  default" of `evaluate --world`, which takes the config's world.test_seed), and the
+  default" of `evaluate --world`, which takes test world 0), and the
   parameters of the ROS 2 node (`fov_crop`, `invalid_depth`), which are not config keys.
 """
 

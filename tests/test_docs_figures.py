@@ -34,7 +34,6 @@ import numpy as np
 import pytest
 import yaml
 
-from mjxvine.config import Config
 from mjxvine.evaluation import choice, paper
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -49,26 +48,13 @@ ORACLE = "baselines/oracle-jackal-results.json"
 HELDOUT = (25, 26, 27)        # test worlds first evaluated after the shipped policy was chosen
 
 
-def success_bar() -> float:
-  """The choice's bar on the validation runs (no recipe sets another): the config's key
-  while there is one, else the module's."""
-  bar = getattr(Config().train, "select_success_bar", None)
-  return bar if bar is not None else getattr(choice, "SUCCESS_BAR", 0.95)
-
-
 def rank(scores: dict) -> tuple:
-  """`choice.rank` with the bar, whether it takes it or knows it."""
-  try:
-    return choice.rank(scores, success_bar())
-  except TypeError:
-    return choice.rank(scores)
+  """`choice.rank` at the choice's bar (no recipe sets another)."""
+  return choice.rank(scores, choice.SUCCESS_BAR)
 
 
 def meets_bar(scores: dict) -> bool:
-  try:
-    return choice.meets_bar(scores, success_bar())
-  except TypeError:
-    return choice.meets_bar(scores)
+  return choice.meets_bar(scores, choice.SUCCESS_BAR)
 
 
 # --- records --------------------------------------------------------------------------------

@@ -146,3 +146,90 @@ def test_damaged_checkpoints_export_or_refuse_in_one_line(checkpoint_run, tmp_pa
       else:
         NumpyPolicy.load(out)
         out.write_bytes(b"the previous file")
+
+
+# ---------------------------------------------------------------- YAML and GeoJSON, hostile
+def _random_yaml(rng: np.random.Generator) -> str:
+  """A YAML text of random structure: nested mappings and lists, anchors and aliases,
+  merge keys, YAML 1.1 scalars (octal, sexagesimal, yes/no), long and control-character
+  strings, deep nesting, or a config section with a wrong type."""
+  scalars = ["010", "1:30", "yes", "0x1f", "1e999", ".nan", "'a\\x1b[31mred'", "~", "-0",
+             "x" * int(rng.integers(1, 5000)), "\"line\\nbreak\"", "[1, 2", "{a: 1"]
+  kind = int(rng.integers(0, 5))
+  if kind == 0:  # anchors and aliases, a billion-laughs seed
+    return "a: &a [x, x, x]\nb: &b [*a, *a, *a]\nc: [*b, *b, *b]\n"
+  if kind == 1:  # deep nesting
+    depth = int(rng.integers(10, 200))
+    return "sac: " + "[" * depth + "1" + "]" * depth + "\n"
+  if kind == 2:  # a known key with a surprising scalar
+    key = rng.choice(["train.seed", "train.max_minutes", "sac.auto_alpha", "env.num_envs",
+                      "world.inter_row_m", "camera.width"])
+    section, name = str(key).split(".")
+    return f"{section}:\n  {name}: {rng.choice(scalars)}\n"
+  if kind == 3:  # merge keys and unknown sections
+    return "base: &base {num_envs: 4}\nenv:\n  <<: *base\n"
+  return "\n".join(f"{rng.choice(['env', 'sac', 'junk', '? [1]'])}: {rng.choice(scalars)}"
+                   for _ in range(int(rng.integers(1, 6)))) + "\n"
+
+
+def test_hostile_yaml_configs_load_or_refuse_in_one_line(tmp_path):
+  """Random hostile YAML (aliases, nesting, YAML 1.1 scalars, control characters) given as
+  a config: a Config or one ConfigError line of bounded length, each within seconds."""
+  import time
+  from mjxvine.config import ConfigError, load_config
+  rng = np.random.default_rng(7)
+  path = tmp_path / "hostile.yaml"
+  for _ in range(60):
+    path.write_text(_random_yaml(rng))
+    start = time.perf_counter()
+    try:
+      load_config(path)
+    except ConfigError as e:
+      message = str(e)
+      assert "\n" not in message and "\x1b" not in message and len(message) < 1000, message
+    assert time.perf_counter() - start < 5.0
+
+
+def _random_geojson(rng: np.random.Generator):
+  """A GeoJSON-like document with random faults: wrong types, deep nesting, huge or
+  non-finite coordinates, empty or one-point rows, hostile names."""
+  lon, lat = 7.62, 44.70
+  pick = lambda options: options[int(rng.integers(len(options)))]
+  def row(i):
+    n = int(rng.integers(0, 4))
+    coords = [[lon + 1e-5 * k, lat + 3e-5 * i] for k in range(n)]
+    geometry = pick(["LineString", "MultiPoint", "Polygon", "Point", None])
+    props = {"name": pick([f"R{i}", "a\nb", "\x1b[2J", 5, None]),
+             "plant_spacing_m": pick([1.0, 0.0, -1, "x", 1e9])}
+    return {"type": "Feature", "properties": props,
+            "geometry": {"type": geometry, "coordinates": pick(
+                [coords, [[1e308, 1e308]], [["a", "b"]], [], 3, [[[lon, lat]]]])}}
+  kind = int(rng.integers(0, 4))
+  if kind == 0:
+    nested = 1
+    for _ in range(int(rng.integers(20, 400))):
+      nested = [nested]
+    return {"type": "FeatureCollection", "features": nested}
+  if kind == 1:
+    return {"type": pick(["FeatureCollection", "Feature", 3]), "features": 7}
+  return {"type": "FeatureCollection",
+          "features": [row(i) for i in range(int(rng.integers(0, 6)))]}
+
+
+def test_hostile_geojson_reads_or_refuses_in_one_line(tmp_path):
+  """Random hostile GeoJSON documents: a Vineyard or one WorldFileError/ValueError line,
+  each within seconds."""
+  import time
+  from mjxvine.config import WorldConfig
+  from mjxvine.worlds.geo import read_vineyard
+  rng = np.random.default_rng(11)
+  path = tmp_path / "hostile.geojson"
+  for _ in range(60):
+    path.write_text(json.dumps(_random_geojson(rng), default=str))
+    start = time.perf_counter()
+    try:
+      read_vineyard(path, WorldConfig(), robot_width_m=0.5)
+    except (WorldFileError, ValueError) as e:
+      message = str(e)
+      assert "\n" not in message and "\x1b" not in message and len(message) < 1000, message
+    assert time.perf_counter() - start < 5.0

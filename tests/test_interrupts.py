@@ -394,3 +394,52 @@ def test_a_stopped_command_removes_its_set_and_nothing_else(tmp_path, capsys):
   err = _error_lines(capsys.readouterr().err)
   assert err == [f"stopped by SIGTERM; removed its partial outputs ({tmp_path}/out/set/a.json)"]
   assert signal.getsignal(signal.SIGTERM) is before  # restored
+
+
+def test_a_stop_removes_new_files_and_keeps_replaced_ones(tmp_path, monkeypatch):
+  """What a stopped command removes (`discard_partial`): the files it created, never one it
+  replaced (the user's earlier file is gone either way: the new content stays); a failed
+  rename leaves the original alone; the next command starts with nothing of the last."""
+  old, new = tmp_path / "old.json", tmp_path / "new.json"
+  old.write_text("earlier")
+  monkeypatch.setattr(atomic, "track_outputs", True)
+  atomic.write_text(old, "replaced")
+  atomic.write_text(new, "created")
+  assert atomic.discard_partial() == [new]
+  assert old.read_text() == "replaced" and not new.exists()
+  atomic._writes.clear()
+  keep = tmp_path / "keep.json"
+  keep.write_text("original")
+  monkeypatch.setattr(atomic.os, "replace", lambda a, b: (_ for _ in ()).throw(OSError("no")))
+  with pytest.raises(OSError):
+    atomic.write_text(keep, "never")
+  monkeypatch.undo()
+  monkeypatch.setattr(atomic, "track_outputs", True)
+  assert atomic.discard_partial() == [] and keep.read_text() == "original"
+  assert atomic.run_command(lambda: 0) == 0 and not atomic._writes
+
+
+def test_a_training_chunk_gets_longer_to_stop_than_a_compilation():
+  """The watchdog's grace after a first signal: `STOP_GRACE_S` while a command is set up or
+  compiles, `CHUNK_STOP_GRACE_S` while the trainer runs a chunk and its checkpoint."""
+  seen = []
+  def main():
+    seen.append(atomic.stop_grace())
+    previous = atomic.set_stop_grace(atomic.CHUNK_STOP_GRACE_S)
+    seen.extend([previous, atomic.stop_grace()])
+    return 0
+  assert atomic.run_command(main) == 0
+  assert seen == [atomic.STOP_GRACE_S, atomic.STOP_GRACE_S, atomic.CHUNK_STOP_GRACE_S]
+  assert atomic.CHUNK_STOP_GRACE_S > 10 * atomic.STOP_GRACE_S
+
+
+def test_a_run_of_the_earlier_release_is_refused_on_resume_before_any_restore(tmp_path):
+  """A run whose checkpoints hold 0.2.0's learner state is refused in one line, before
+  anything is restored or moved aside."""
+  from mjxvine.training import loop
+  step = tmp_path / "checkpoints" / "40" / "default"
+  step.mkdir(parents=True)
+  (step / "_METADATA").write_text('{"tree_metadata": {"learner": {"policy_params": {}}}}')
+  with pytest.raises(rundir.ResumeRefused, match="0.2.0") as e:
+    loop._restore(tmp_path, None, None, False, True, print)
+  assert "\n" not in str(e.value) and step.is_dir()

@@ -14,7 +14,6 @@ import pytest
 
 from mjxvine import native
 from mjxvine import networks as nw
-from mjxvine import sac
 
 needs_native = pytest.mark.skipif(not native.available(),
                                   reason=f"native conv: {native.unavailable_reason()}")

@@ -2,7 +2,6 @@
 expects), gives the actions of before on valid input; the ROS depth helpers; the ROS 2
 node stops on a refused input. numpy only (no jax): fast."""
 
-import importlib.util
 import math
 import os
 import re
@@ -18,6 +17,7 @@ import pytest
 
 from mjxvine.deploy import numpy_policy as npp
 from mjxvine.deploy.numpy_policy import NumpyPolicy, PolicyError, PolicyInputError
+import ros_stubs
 from conftest import NUMPY_ONLY_PRELUDE, parse_source
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -350,85 +350,12 @@ def test_the_policy_file_alone_checks_inputs_with_numpy_only(tmp_path):
 
 # ---------------------------------------------------------------- the ROS 2 node, no ROS
 
-class _Logger:
-  def __init__(self):
-    self.records = []
-
-  def _log(self, level, msg, **kw):
-    self.records.append((level, msg, kw))
-
-  def error(self, msg, **kw):
-    self._log("error", msg, **kw)
-
-  def warn(self, msg, **kw):
-    self._log("warn", msg, **kw)
-
-  def info(self, msg, **kw):
-    self._log("info", msg, **kw)
-
-
-class _Node:
-  """The part of rclpy.node.Node the example uses; `t` is the clock (s)."""
-  params = {}
-
-  def __init__(self, name):
-    self.name, self.t, self.published, self._logger = name, 100.0, [], _Logger()
-
-  def declare_parameter(self, name, default):
-    return SimpleNamespace(value=self.params.get(name, default))
-
-  def get_logger(self):
-    return self._logger
-
-  def get_clock(self):
-    return SimpleNamespace(now=lambda: SimpleNamespace(nanoseconds=int(self.t * 1e9)))
-
-  def create_publisher(self, *args):
-    return SimpleNamespace(publish=self.published.append)
-
-  def create_service(self, *args):
-    pass
-
-  def create_subscription(self, *args):
-    pass
-
-  def create_timer(self, *args):
-    pass
-
-
-class _Twist:
-  def __init__(self):
-    self.linear = SimpleNamespace(x=0.0, y=0.0, z=0.0)
-    self.angular = SimpleNamespace(x=0.0, y=0.0, z=0.0)
-
-
 @pytest.fixture
 def node(monkeypatch):
   """A VineyardNode of examples/ros2_vineyard_node.py on stub rclpy and message modules,
   driving models/jackal.npz without fov_crop."""
-  import types
-
-  def module(name, **attrs):
-    mod = types.ModuleType(name)
-    mod.__dict__.update(attrs)
-    monkeypatch.setitem(sys.modules, name, mod)
-
-  module("rclpy", init=lambda args=None: None, spin=lambda node: None,
-         try_shutdown=lambda: None)
-  module("rclpy.node", Node=_Node)
-  module("rclpy.qos", qos_profile_sensor_data=None)
-  module("sensor_msgs")
-  module("sensor_msgs.msg", CameraInfo=object, Image=object, Imu=object)
-  module("geometry_msgs")
-  module("geometry_msgs.msg", Twist=_Twist)
-  module("std_srvs")
-  module("std_srvs.srv", Trigger=object)
-  monkeypatch.setattr(_Node, "params", {"policy": str(MODEL), "fov_crop": False})
-  spec = importlib.util.spec_from_file_location("ros2_vineyard_node",
-                                                ROOT / "examples" / "ros2_vineyard_node.py")
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
-  return mod.VineyardNode()
+  return ros_stubs.load_node_module(
+      monkeypatch, {"policy": str(MODEL), "fov_crop": False}).VineyardNode()
 
 
 def _image(counts, encoding="16UC1"):

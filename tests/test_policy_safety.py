@@ -4,7 +4,6 @@ the box or none, holds no memory after a large batch; the ROS 2 node's logic
 (`mjxvine.deploy.node_logic`) stops on every bad message, and the node on any exception.
 numpy only (no jax, no rclpy): fast."""
 
-import importlib.util
 import io
 import json
 import math
@@ -12,7 +11,6 @@ import struct
 import subprocess
 import sys
 import tracemalloc
-import types
 import zlib
 from pathlib import Path
 from types import SimpleNamespace
@@ -20,6 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+import ros_stubs
 from mjxvine.deploy import node_logic as nl
 from mjxvine.deploy import numpy_policy as npp
 from mjxvine.deploy.numpy_policy import NumpyPolicy, PolicyError, PolicyFormatError
@@ -634,77 +633,10 @@ def test_the_node_logic_runs_copied_next_to_the_policy_file(tmp_path):
 
 # ------------------------------------------------------------ the node itself, stub rclpy
 
-class _Logger:
-  def __init__(self):
-    self.records = []
-
-  def error(self, msg, **kw):
-    self.records.append(("error", msg, kw))
-
-  def warn(self, msg, **kw):
-    self.records.append(("warn", msg, kw))
-
-  def info(self, msg, **kw):
-    self.records.append(("info", msg, kw))
-
-
-class _Node:
-  """The part of rclpy.node.Node the example uses; `t` is the clock (s)."""
-  params = {}
-
-  def __init__(self, name):
-    self.t, self.published, self._logger = NOW, [], _Logger()
-
-  def declare_parameter(self, name, default):
-    return SimpleNamespace(value=self.params.get(name, default))
-
-  def get_logger(self):
-    return self._logger
-
-  def get_clock(self):
-    return SimpleNamespace(now=lambda: SimpleNamespace(nanoseconds=int(self.t * 1e9)))
-
-  def create_publisher(self, *args):
-    return SimpleNamespace(publish=self.published.append)
-
-  def create_service(self, *args):
-    pass
-
-  def create_subscription(self, *args):
-    pass
-
-  def create_timer(self, *args):
-    pass
-
-
-def _twist():
-  return SimpleNamespace(linear=SimpleNamespace(x=0.0), angular=SimpleNamespace(z=0.0))
-
-
 @pytest.fixture
 def node_module(monkeypatch):
   """examples/ros2_vineyard_node.py on stub rclpy and message modules."""
-  def module(name, **attrs):
-    mod = types.ModuleType(name)
-    mod.__dict__.update(attrs)
-    monkeypatch.setitem(sys.modules, name, mod)
-
-  module("rclpy", init=lambda args=None: None, spin=lambda node: None,
-         try_shutdown=lambda: None)
-  module("rclpy.node", Node=_Node)
-  module("rclpy.qos", qos_profile_sensor_data=None)
-  module("sensor_msgs")
-  module("sensor_msgs.msg", CameraInfo=object, Image=object, Imu=object)
-  module("geometry_msgs")
-  module("geometry_msgs.msg", Twist=_twist)
-  module("std_srvs")
-  module("std_srvs.srv", Trigger=object)
-  monkeypatch.setattr(_Node, "params", {"policy": str(MODEL)})
-  spec = importlib.util.spec_from_file_location("ros2_vineyard_node",
-                                                ROOT / "examples" / "ros2_vineyard_node.py")
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
-  return mod
+  return ros_stubs.load_node_module(monkeypatch, {"policy": str(MODEL)}, clock_s=NOW)
 
 
 def _command(node):
@@ -748,6 +680,6 @@ def test_the_node_does_not_start_on_a_bad_policy(node_module, tmp_path, monkeypa
   arrays, meta = _model()
   path = _save(tmp_path / "nan.npz", dict(arrays, **{"mean/bias": np.full(2, np.nan,
                                                                          np.float32)}), meta)
-  monkeypatch.setattr(_Node, "params", {"policy": str(path)})
+  monkeypatch.setattr(ros_stubs.Node, "params", {"policy": str(path)})
   assert node_module.main([]) == 2
   assert "mean/bias has 2 NaN or inf weights" in capsys.readouterr().err

@@ -18,6 +18,7 @@ import numpy as np
 
 from mjxvine import config as config_lib
 from mjxvine.bench.common import int_list, positive_int
+from mjxvine.cli import seed_type
 
 
 def add_deploy_args(p: argparse.ArgumentParser) -> None:
@@ -25,7 +26,7 @@ def add_deploy_args(p: argparse.ArgumentParser) -> None:
                  help="timed single-image calls per row")
   p.add_argument("--threads", default="1,2", type=int_list,
                  help="comma-separated BLAS (numpy) / intra-op (onnxruntime) thread counts")
-  p.add_argument("--seed", type=int, default=0, metavar="N",
+  p.add_argument("--seed", type=seed_type, default=0, metavar="N",
                  help="seed of the random actor weights and of the inputs of the numpy / "
                       "onnxruntime agreement check (default 0)")
 

@@ -17,6 +17,7 @@ from mujoco import mjx
 
 from mjxvine import config as config_lib
 from mjxvine.bench.common import int_list, size_list, time_call
+from mjxvine.cli import seed_type
 
 # The pose-dependent fields of mjx.Data: all that a depth image needs besides the model.
 FIELDS = ("cam_xpos", "cam_xmat", "geom_xpos", "geom_xmat")
@@ -35,7 +36,7 @@ def add_depth_args(p: argparse.ArgumentParser) -> None:
                  help="also time lax.map over chunks of this many images for larger batches "
                       "(default 16 on CPU, 0 elsewhere; 0: skip)")
   p.add_argument("--min-time", type=float, default=1.0, help="seconds per measurement")
-  p.add_argument("--seed", type=int, default=0, metavar="N",
+  p.add_argument("--seed", type=seed_type, default=0, metavar="N",
                  help="seed of the train vineyard rendered and of the random robot poses "
                       "in it (default 0)")
 

@@ -28,9 +28,10 @@ import numpy as np
 
 try:
   from mjxvine.deploy.numpy_policy import (ROS_DEPTH_ENCODINGS, PolicyError, depth_from_ros,
-                                           fov_window)
+                                           finite_number, fov_window)
 except ImportError:  # no mjxvine on the robot: numpy_policy.py copied as mjxvine_deploy.py
-  from mjxvine_deploy import ROS_DEPTH_ENCODINGS, PolicyError, depth_from_ros, fov_window
+  from mjxvine_deploy import (ROS_DEPTH_ENCODINGS, PolicyError, depth_from_ros, finite_number,
+                              fov_window)
 
 # A message stamped up to this far after the node's clock is accepted (s): clocks of
 # two machines synchronised by NTP or PTP differ by milliseconds.
@@ -75,13 +76,7 @@ def _int(v, what: str, lo: int, hi: int) -> int:
 
 
 def _float(v, what: str) -> float:
-  try:
-    f = float(v)
-  except (TypeError, ValueError, OverflowError):
-    f = math.nan
-  if not math.isfinite(f):
-    raise Refused(f"{what} {v!r}: expected a finite number")
-  return f
+  return finite_number(v, what, Refused)
 
 
 def stamp_seconds(stamp) -> float:

@@ -555,6 +555,41 @@ def _array_names(layout: dict) -> list[str]:
   return [f"{n}/{p}" for n in names for p in ("kernel", "bias")]
 
 
+def _outputs(arrays: dict, name: str, ndim: int) -> int:
+  """The last axis of kernel `arrays[name]`, its rank checked to be `ndim`."""
+  shape = np.shape(arrays[name])
+  if len(shape) != ndim or shape[-1] < 1:
+    raise PolicyFormatError(f"{name} has shape {shape}, expected {ndim} axes")
+  return int(shape[-1])
+
+
+def _weights(arrays: dict, name: str, shape: tuple) -> np.ndarray:
+  """`arrays[name]` as float32, its dtype, shape and values checked."""
+  a = np.asarray(arrays[name])
+  if a.dtype.kind != "f":
+    raise PolicyFormatError(f"{name} of dtype {a.dtype}: expected floating point")
+  if a.shape != shape:
+    raise PolicyFormatError(f"{name} has shape {a.shape}, expected {shape}")
+  with np.errstate(over="ignore"):  # float64 beyond float32 becomes inf: refused below
+    a = np.ascontiguousarray(a, np.float32)
+  if not np.isfinite(a).all():
+    raise PolicyFormatError(f"{name} has {a.size - np.count_nonzero(np.isfinite(a))} "
+                            "NaN or inf weights (or beyond float32): a broken export")
+  return a
+
+
+def finite_number(value, what: str, error: type = PolicyInputError,
+                  expected: str = "a finite number") -> float:
+  """`value` as a finite float, else `error` naming `what` (one line)."""
+  try:
+    number = float(value)
+  except (TypeError, ValueError, OverflowError):
+    number = math.nan
+  if not math.isfinite(number):
+    raise error(f"{what} {value!r}: expected {expected}")
+  return number
+
+
 class NumpyPolicy:
   """The actor's deterministic action, in numpy. Build with `NumpyPolicy.load(path)`."""
 
@@ -603,31 +638,13 @@ class NumpyPolicy:
     if missing:
       raise PolicyFormatError(f"policy file lacks arrays: {', '.join(missing)}")
 
-    def outputs(name: str, ndim: int) -> int:  # a kernel's last axis, its rank checked
-      shape = np.shape(arrays[name])
-      if len(shape) != ndim or shape[-1] < 1:
-        raise PolicyFormatError(f"{name} has shape {shape}, expected {ndim} axes")
-      return int(shape[-1])
-
-    def weights(name: str, shape: tuple) -> np.ndarray:  # float32, shape and values checked
-      a = np.asarray(arrays[name])
-      if a.dtype.kind != "f":
-        raise PolicyFormatError(f"{name} of dtype {a.dtype}: expected floating point")
-      if a.shape != shape:
-        raise PolicyFormatError(f"{name} has shape {a.shape}, expected {shape}")
-      with np.errstate(over="ignore"):  # float64 beyond float32 becomes inf: refused below
-        a = np.ascontiguousarray(a, np.float32)
-      if not np.isfinite(a).all():
-        raise PolicyFormatError(f"{name} has {a.size - np.count_nonzero(np.isfinite(a))} "
-                                "NaN or inf weights (or beyond float32): a broken export")
-      return a
-
     def layer(name: str, shape: tuple) -> tuple[np.ndarray, np.ndarray]:
-      return weights(f"{name}/kernel", shape), weights(f"{name}/bias", shape[-1:])
+      return (_weights(arrays, f"{name}/kernel", shape),
+              _weights(arrays, f"{name}/bias", shape[-1:]))
 
     self._convs, channels = [], 1
     for i, (stride, pool) in enumerate(layers):
-      features = outputs(f"tower/conv{i}/kernel", 4)
+      features = _outputs(arrays, f"tower/conv{i}/kernel", 4)
       k, b = layer(f"tower/conv{i}", (3, 3, channels, features))
       if i == 0:  # fold the input scaling into the first kernel
         k = k * np.float32(self.input_scale)
@@ -643,7 +660,7 @@ class NumpyPolicy:
     if self._work_bytes > MAX_IMAGE_WORK_BYTES:
       raise PolicyFormatError(f"the conv tower needs {self._work_bytes} bytes of buffers per "
                               f"image: at most {MAX_IMAGE_WORK_BYTES}")
-    outputs("dense0/kernel", 2)  # a matrix: its rows are the features and the state
+    _outputs(arrays, "dense0/kernel", 2)  # a matrix: its rows are the features and the state
     self.state_size = int(np.shape(arrays["dense0/kernel"])[0]) - channels
     if not 1 <= self.state_size <= MAX_STATE:
       raise PolicyFormatError(f"dense0/kernel has {self.state_size + channels} inputs for "
@@ -652,7 +669,7 @@ class NumpyPolicy:
     width = channels + self.state_size
     self._dense = []
     for i in range(num_hidden):
-      hidden = outputs(f"dense{i}/kernel", 2)
+      hidden = _outputs(arrays, f"dense{i}/kernel", 2)
       self._dense.append(layer(f"dense{i}", (width, hidden)))
       width = hidden
     self._mean = layer("mean", (width, self.low.shape[0]))
@@ -948,15 +965,7 @@ class NumpyPolicy:
     ("world", the paper's input; also files exported before the key existed; files of
     mjxvine 0.2.0 may carry an offset). PolicyInputError for a yaw that is not a finite
     number."""
-    def angle(v, name: str) -> float:
-      try:
-        v = float(v)
-      except (TypeError, ValueError, OverflowError):
-        v = math.nan
-      if not math.isfinite(v):
-        raise PolicyInputError(f"{name} {v!r}: expected a finite angle in rad")
-      return v
-
+    angle = lambda v, name: finite_number(v, name, PolicyInputError, "a finite angle in rad")
     imu_yaw = angle(imu_yaw, "imu_yaw")
     if self.layout["yaw_reference"] == "start":
       if start_yaw is None:

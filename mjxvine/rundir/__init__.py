@@ -3,8 +3,9 @@ run: one writer at a time (`RunLock`), stops on SIGINT / SIGTERM at a chunk boun
 (`StopSignals`), and failed writes reported in one line (`WriteError`, `free_space`).
 
 Under `python -m mjxvine.train` (`atomic.command_main`) a run that has not stopped within
-`atomic.STOP_GRACE_S` of a signal (a chunk or a compilation that does not end) is ended
-by the command's watchdog, keeping its last intact checkpoint.
+`atomic.stop_grace()` of a signal (`atomic.STOP_GRACE_S` while it is set up or compiles,
+`atomic.CHUNK_STOP_GRACE_S` for a chunk and its checkpoint) is ended by the command's
+watchdog, keeping its last intact checkpoint.
 
     RUN_DIR/config.yaml        the resolved config          (`mjxvine.training.loop`)
     RUN_DIR/metrics.jsonl, tb/ one row per member and chunk (`logs.Logger`)
@@ -237,10 +238,7 @@ class RunLock:
     """Removes the lock file (while still holding it: a run that ended leaves none) and
     unlocks."""
     if self.fd is not None:
-      try:
-        self.path.unlink()
-      except FileNotFoundError:
-        pass
+      self.drop_file()  # only our own file: another process may hold a new one there
       fcntl.flock(self.fd, fcntl.LOCK_UN)
       os.close(self.fd)
       self.fd = None
@@ -311,7 +309,7 @@ class StopSignals:
     if at_once:
       return
     self.requested = self.requested or signum
-    late = (f" if within {atomic.STOP_GRACE_S:g} s (else at once, keeping the last one)"
+    late = (f" if within {atomic.stop_grace():g} s (else at once, keeping the last one)"
             if atomic.command_signal() else "")
     self.say(f"\n{name}: stopping after this chunk, with a checkpoint{late}"
              + (" (Ctrl-C again to stop at once)" if signum == signal.SIGINT else ""))

@@ -35,7 +35,8 @@ import numpy as np
 from mjxvine import networks as nw
 from mjxvine import sac as sac_lib
 from mjxvine import atomic
-from mjxvine.config import Config, ConfigError, load_config, to_yaml
+from mjxvine.config import (RELEASE_WITH_REMOVED, Config, ConfigError,
+                            load_run_config, to_yaml)
 from mjxvine.rundir import (Interrupted, ResumeRefused, RunDirBusy, RunLock, StopSignals,
                             original_config, record_fact, refuse_changes, set_aside,
                             write_run_record)
@@ -174,7 +175,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   the restored checkpoint. SIGINT / SIGTERM end the current chunk, write a checkpoint and
   raise `rundir.Interrupted` (at once, keeping the last checkpoint, when they come while
   the run is set up or its first chunk compiles; a second Ctrl-C too); under
-  `atomic.command_main` a run not stopped within `atomic.STOP_GRACE_S` is ended by its
+  `atomic.command_main` a run not stopped within `atomic.stop_grace()` is ended by its
   watchdog, the partial checkpoint of a save removed. A failed checkpoint write raises
   `rundir.WriteError`. With several processes (`jax.distributed`) every process calls
   this; all of them enter the same collectives, process 0 alone writes logs and prints.
@@ -289,7 +290,7 @@ def _set_up(cfg: Config, run_dir: Path, resume: bool, restart: bool, env,
 def _config_yaml(run_dir: Path, cfg: Config) -> Config:
   """The run's config.yaml as it is on disk (`cfg` when it is gone)."""
   path = run_dir / "config.yaml"
-  return load_config(path) if path.is_file() else cfg
+  return load_run_config(path) if path.is_file() else cfg
 
 
 def _restore(run_dir: Path, ckpt: Checkpoints, ts, restart: bool, primary: bool,
@@ -298,6 +299,11 @@ def _restore(run_dir: Path, ckpt: Checkpoints, ts, restart: bool, primary: bool,
   None to start afresh: a run with no checkpoint yet, or, with `restart`, one whose
   checkpoints are all broken (its outputs set aside first). ResumeRefused otherwise."""
   broken = run_dir / "checkpoints-broken"
+  for meta in (run_dir / "checkpoints").glob("*/*/_METADATA"):
+    if '"policy_params"' in meta.read_text(errors="replace"):  # LearnerState of 0.2.0
+      raise ResumeRefused(f"--resume {run_dir}: its checkpoints were written by "
+                          f"{RELEASE_WITH_REMOVED}, which resumes them; this release "
+                          "evaluates, exports and chooses its policies but cannot continue it")
   had = bool(ckpt.manager.all_steps() or ckpt.best_manager.all_steps() or broken.exists()
              or (run_dir / "best.json").exists())
   restored = ckpt.restore(ts)
@@ -362,6 +368,9 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
       say("compiling the training iteration (the first chunk includes it)...")
       # a signal during the compilation stops at once: the chunk holds nothing to keep
       stop_now, stops.stop_now = stops.stop_now, lambda: True
+    # a signal during a compilation ends the run in seconds; one during a chunk lets the
+    # chunk and its checkpoint end
+    atomic.set_stop_grace(atomic.STOP_GRACE_S if first else atomic.CHUNK_STOP_GRACE_S)
     t0 = time.time()
     try:
       ts, m = run.chunk_fn(ts)
@@ -418,6 +427,7 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
       ts, chunk_index, signum = _loop(
           cfg, run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say)
       checkpoints.at_end(ts, chunk_index)  # stopped early (a signal, train.max_minutes)
+      atomic.set_stop_grace(atomic.STOP_GRACE_S)
       phase[0] = "closing"
       if signum:
         # what a resume needs and no more, so that the stop fits in its grace (the

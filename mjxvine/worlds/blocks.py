@@ -151,33 +151,7 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
   labels = list(labels or [f"row {j + 1}" for j in range(len(rows))])
   rows = [np.asarray(r, np.float64).reshape(-1, 2) for r in rows]
   block = source or "the block"
-  if len(rows) < 2:
-    raise WorldFileError(f"{block}: {len(rows)} plant row(s); a lane needs two rows side by "
-                         "side")
-  if len(rows) > MAX_ROWS:
-    raise WorldFileError(f"{block}: {len(rows)} plant rows; a block has at most {MAX_ROWS}")
-  total = sum(len(r) for r in rows)
-  if total > MAX_PLANTS:
-    raise WorldFileError(f"{block}: {total} plants; a block has at most {MAX_PLANTS}")
-  for r, label in zip(rows, labels):
-    if len(r) < 2:
-      raise WorldFileError(f"{label}: {len(r)} plant(s); a row needs at least 2")
-    if len(r) > MAX_ROW_PLANTS:
-      raise WorldFileError(f"{label}: {len(r)} plants; a row has at most {MAX_ROW_PLANTS}")
-    if not np.all(np.isfinite(r)):
-      raise WorldFileError(f"{label}: a position is not a finite number")
-    gaps = np.linalg.norm(np.diff(r, axis=0), axis=1)
-    if gaps.min() < MIN_PLANT_SPACING_M:
-      k = int(np.argmax(gaps < MIN_PLANT_SPACING_M))  # the first such pair
-      raise WorldFileError(
-          f"{label}: plants {k + 1} and {k + 2} are {gaps[k] * 1000:.0f} mm apart; plants of "
-          f"a row nearer than {MIN_PLANT_SPACING_M:g} m are not vines (positions in metres?)")
-  allxy = np.concatenate(rows)
-  span = allxy.max(0) - allxy.min(0)
-  if span.max() > MAX_BLOCK_M:
-    raise WorldFileError(
-        f"{block}: spans {span[0] / 1000:.1f} x {span[1] / 1000:.1f} km; a vineyard block is "
-        f"at most {MAX_BLOCK_M / 1000:g} km across (swapped or projected coordinates?)")
+  _check_rows(block, rows, labels)
   heading = block_heading(rows) if heading_rad is None else heading_rad
   rows = [_rotate(r, -heading) for r in rows]
   _check_terrain(block, np.concatenate(rows))
@@ -219,6 +193,38 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
              [float(v) for v in origin_lonlat], "heading_deg": float(np.rad2deg(heading)),
              "offset_m": offset.tolist(), "rows": labels,
              "slope_pct": float(slope_pct), "cross_slope_pct": float(cross_slope_pct)})
+
+
+def _check_rows(block: str, rows: list[np.ndarray], labels: list[str]) -> None:
+  """Refuses rows (input frame, m) beyond the block's limits: row, plant and per-row counts,
+  finite positions, plant spacing and the block's span; `block` names it in messages."""
+  if len(rows) < 2:
+    raise WorldFileError(f"{block}: {len(rows)} plant row(s); a lane needs two rows side by "
+                         "side")
+  if len(rows) > MAX_ROWS:
+    raise WorldFileError(f"{block}: {len(rows)} plant rows; a block has at most {MAX_ROWS}")
+  total = sum(len(r) for r in rows)
+  if total > MAX_PLANTS:
+    raise WorldFileError(f"{block}: {total} plants; a block has at most {MAX_PLANTS}")
+  for r, label in zip(rows, labels):
+    if len(r) < 2:
+      raise WorldFileError(f"{label}: {len(r)} plant(s); a row needs at least 2")
+    if len(r) > MAX_ROW_PLANTS:
+      raise WorldFileError(f"{label}: {len(r)} plants; a row has at most {MAX_ROW_PLANTS}")
+    if not np.all(np.isfinite(r)):
+      raise WorldFileError(f"{label}: a position is not a finite number")
+    gaps = np.linalg.norm(np.diff(r, axis=0), axis=1)
+    if gaps.min() < MIN_PLANT_SPACING_M:
+      k = int(np.argmax(gaps < MIN_PLANT_SPACING_M))  # the first such pair
+      raise WorldFileError(
+          f"{label}: plants {k + 1} and {k + 2} are {gaps[k] * 1000:.0f} mm apart; plants of "
+          f"a row nearer than {MIN_PLANT_SPACING_M:g} m are not vines (positions in metres?)")
+  allxy = np.concatenate(rows)
+  span = allxy.max(0) - allxy.min(0)
+  if span.max() > MAX_BLOCK_M:
+    raise WorldFileError(
+        f"{block}: spans {span[0] / 1000:.1f} x {span[1] / 1000:.1f} km; a vineyard block is "
+        f"at most {MAX_BLOCK_M / 1000:g} km across (swapped or projected coordinates?)")
 
 
 def _check_terrain(block: str, xy: np.ndarray) -> None:

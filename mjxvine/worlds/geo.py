@@ -40,9 +40,7 @@ and per block, LineString vertices, plant spacing, terrain.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import json
 import math
 from pathlib import Path
@@ -52,6 +50,7 @@ import numpy as np
 from mjxvine.config import WorldConfig
 from mjxvine.robot_files import clean, short_repr
 from mjxvine.worlds.blocks import MAX_BLOCK_M, BlockFrame, vineyard_from_rows
+from mjxvine.worlds.geo_csv import read_csv_rows
 from mjxvine.worlds.geodesy import (WGS84_A, WGS84_E2, ecef, local_to_lonlat,  # noqa: F401
                                     lonlat_to_local, tangent_plane_error_m)
 # the writers, in their own module, are part of this one's interface
@@ -159,19 +158,7 @@ def _from_rows(path: Path, rows, cfg, frame: BlockFrame, **kw) -> Vineyard:
 
 def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_m, args,
                   seed) -> Vineyard:
-  text = _read_text(path)
-  if json_too_deep(text, MAX_JSON_DEPTH):
-    raise WorldFileError(f"{path}: JSON nested more than {MAX_JSON_DEPTH} deep (arrays and "
-                         "objects inside each other); GeoJSON rows need 6")
-  try:
-    doc = json.loads(text)
-  except json.JSONDecodeError as e:
-    raise WorldFileError(f"{path}: not JSON ({e.msg} at line {e.lineno} column "
-                         f"{e.colno})") from None
-  except RecursionError:
-    raise WorldFileError(f"{path}: not JSON (nested too deeply)") from None
-  except ValueError as e:  # a number of thousands of digits
-    raise WorldFileError(f"{path}: not JSON ({clean(str(e), 80)})") from None
+  doc = _parse_json(path, _read_text(path))
   if not isinstance(doc, dict) or "type" not in doc:
     raise WorldFileError(f"{path}: JSON but not GeoJSON (no \"type\" member): a vineyard file "
                          "is a GeoJSON FeatureCollection, one Feature per plant row")
@@ -221,6 +208,42 @@ def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_
         f"{path}: the rows span {span[0] / 1000:.1f} x {span[1] / 1000:.1f} km (east x north),"
         f" more than one vineyard block (at most {MAX_BLOCK_M / 1000:g} km across)")
 
+  rows = _row_plants(path, parsed, local, default_spacing)
+  error_m = tangent_plane_error_m(coords, origin)
+  heading = meta.get("heading_deg")
+  slopes = {k: v if v is not None else meta.get(k, 0.0) for k, v in args.items()}
+  frame = BlockFrame(origin_lonlat=origin,
+                     heading_rad=None if heading is None else math.radians(heading), **slopes)
+  world = _from_rows(path, rows, cfg, frame, robot_width_m=robot_width_m, labels=labels,
+                     seed=seed, row_sizes=[p["sizes"] for p in parsed])
+  if "offset_m" in meta:
+    world = _shifted(path, world, meta["offset_m"])
+  return _frame(world, {p["label"]: p["name"] for p in parsed}, "geojson", error_m)
+
+
+def _parse_json(path: Path, text: str):
+  """The JSON document of `text` (nesting bounded before parsing), else one-line
+  WorldFileError."""
+  if json_too_deep(text, MAX_JSON_DEPTH):
+    raise WorldFileError(f"{path}: JSON nested more than {MAX_JSON_DEPTH} deep (arrays and "
+                         "objects inside each other); GeoJSON rows need 6")
+  try:
+    doc = json.loads(text)
+  except json.JSONDecodeError as e:
+    raise WorldFileError(f"{path}: not JSON ({e.msg} at line {e.lineno} column "
+                         f"{e.colno})") from None
+  except RecursionError:
+    raise WorldFileError(f"{path}: not JSON (nested too deeply)") from None
+  except ValueError as e:  # a number of thousands of digits
+    raise WorldFileError(f"{path}: not JSON ({clean(str(e), 80)})") from None
+  return doc
+
+
+def _row_plants(path: Path, parsed: list[dict], local: list[np.ndarray],
+                default_spacing: float | None) -> list[np.ndarray]:
+  """The plants (n, 2), local m, of each checked feature (`_feature`; `local`: its
+  positions in the tangent plane): a LineString's along its line, a MultiPoint's as given;
+  the block's plants counted as they are made."""
   rows, plants = [], 0
   for p, xy in zip(parsed, local):
     if p["kind"] == "LineString":
@@ -237,16 +260,7 @@ def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_
     if plants > MAX_PLANTS:
       raise WorldFileError(f"{path}: more than {MAX_PLANTS} plants by {p['label']}; a block "
                            f"has at most {MAX_PLANTS}")
-  error_m = tangent_plane_error_m(coords, origin)
-  heading = meta.get("heading_deg")
-  slopes = {k: v if v is not None else meta.get(k, 0.0) for k, v in args.items()}
-  frame = BlockFrame(origin_lonlat=origin,
-                     heading_rad=None if heading is None else math.radians(heading), **slopes)
-  world = _from_rows(path, rows, cfg, frame, robot_width_m=robot_width_m, labels=labels,
-                     seed=seed, row_sizes=[p["sizes"] for p in parsed])
-  if "offset_m" in meta:
-    world = _shifted(path, world, meta["offset_m"])
-  return _frame(world, {p["label"]: p["name"] for p in parsed}, "geojson", error_m)
+  return rows
 
 
 def _meta(path: Path, m) -> dict:
@@ -425,62 +439,7 @@ def _shifted(path: Path, world: Vineyard, offset) -> Vineyard:
 
 
 def _read_csv(path: Path, cfg: WorldConfig, *, robot_width_m, args, seed) -> Vineyard:
-  text = _read_text(path)
-  reader = csv.reader(io.StringIO(text, newline=""))
-  try:
-    header = next((r for r in reader if any(c.strip() for c in r)), None)
-    if header is None:
-      raise WorldFileError(f"{path}: empty; a plant CSV is a header row,x_m,y_m and one plant "
-                           "per line")
-    header_line = reader.line_num
-    names = [c.strip().lower() for c in header]
-    lacking = [c for c in ("row", "x_m", "y_m") if c not in names]
-    if lacking:
-      hint = " (separated by ';'? use commas)" if ";" in ",".join(header) else ""
-      raise WorldFileError(f"{path}: line {header_line}: the header "
-                           f"{short_repr(','.join(header))} has no {', '.join(lacking)}"
-                           f"{hint}: a plant CSV starts with row,x_m,y_m")
-    twice = sorted({c for c in names if c and names.count(c) > 1})
-    if twice:
-      raise WorldFileError(f"{path}: line {header_line}: column(s) "
-                           f"{clean(', '.join(twice), 80)} twice in the header")
-    col = {c: names.index(c) for c in ("row", "x_m", "y_m", *SIZE_KEYS) if c in names}
-    rows: dict[str, list] = {}
-    sizes: dict[str, dict[str, list]] = {}
-    plants = 0
-    for cells in reader:
-      line = reader.line_num
-      if not any(c.strip() for c in cells):
-        continue
-      if len(cells) < len(names) or any(c.strip() for c in cells[len(names):]):
-        raise WorldFileError(f"{path}: line {line}: {len(cells)} fields, the header has "
-                             f"{len(names)}")
-      label = cells[col["row"]].strip()
-      if not label:
-        raise WorldFileError(f"{path}: line {line}: the row label is empty")
-      x, y = (_csv_number(path, line, cells, col, k) for k in ("x_m", "y_m"))
-      row = rows.setdefault(label, [])
-      row.append((x, y))
-      plants += 1  # the limits as the lines come: a huge file stops at the first beyond
-      if plants > MAX_PLANTS:
-        raise WorldFileError(f"{path}: line {line}: more than {MAX_PLANTS} plants; a block "
-                             f"has at most {MAX_PLANTS}")
-      if len(row) > MAX_ROW_PLANTS:
-        raise WorldFileError(f"{path}: line {line}: more than {MAX_ROW_PLANTS} plants in "
-                             f"row {short_repr(label)}; a row has at most {MAX_ROW_PLANTS}")
-      if len(rows) > MAX_ROWS:
-        raise WorldFileError(f"{path}: line {line}: more than {MAX_ROWS} rows (labels); a "
-                             f"block has at most {MAX_ROWS}")
-      given = sizes.setdefault(label, {})
-      for key in SIZE_KEYS:
-        if key in col and cells[col[key]].strip():
-          v = _csv_number(path, line, cells, col, key)
-          if v <= 0:
-            raise WorldFileError(f"{path}: line {line}: {key} {v:g}: give a positive number "
-                                 "of metres")
-          given.setdefault(key, []).append(v)
-  except csv.Error as e:
-    raise WorldFileError(f"{path}: line {reader.line_num}: not CSV ({e})") from None
+  rows, sizes = read_csv_rows(path, _read_text(path))
   if not rows:
     raise WorldFileError(f"{path}: a header but no plants")
   plants = np.concatenate([np.asarray(r) for r in rows.values()])
@@ -499,15 +458,3 @@ def _read_csv(path: Path, cfg: WorldConfig, *, robot_width_m, args, seed) -> Vin
                                 for r in rows])
   return _frame(world, dict(zip(labels, rows)), "csv", None)
 
-
-def _csv_number(path: Path, line: int, cells: list, col: dict, key: str) -> float:
-  cell = cells[col[key]].strip()
-  try:
-    v = float(cell)
-  except ValueError:
-    raise WorldFileError(f"{path}: line {line}: {key} {short_repr(cell, 30)} is not a "
-                         "number") from None
-  if not math.isfinite(v):
-    raise WorldFileError(f"{path}: line {line}: {key} {short_repr(cell, 30)} is not a finite "
-                         "number")
-  return v
