@@ -27,6 +27,10 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
+# `check_output`'s error and its rule against writing over an input (the commands import
+# them from here)
+from mjxvine.outputs import OutputError, check_not_input  # noqa: F401
+
 
 class _Write:
   """One `atomic_path` write: `committing` is set just before the rename, so that a stop
@@ -43,10 +47,6 @@ _made_dirs: list[Path] = []  # made by `check_output` while `track_outputs`
 # Set while a command whose outputs form one set runs (`run_command`): the files it wrote
 # are removed again when a signal stops it before it ends.
 track_outputs = False
-
-
-class OutputError(ValueError):
-  """An output path that cannot be written: one line naming the flag, the path and why."""
 
 
 def check_output(path: str | Path, flag: str, directory: bool = False, *,
@@ -80,40 +80,6 @@ def check_output(path: str | Path, flag: str, directory: bool = False, *,
     reason = e.strerror or type(e).__name__
     raise OutputError(f"{flag} {path}: cannot write in {folder} ({reason})") from None
   return path
-
-
-def check_not_input(path: str | Path, flag: str, inputs: Sequence[tuple],
-                    writes: Sequence[str] | None = None, own: Sequence[str | Path] = ()) -> None:
-  """Refuses (`OutputError`) an output that would write over what the command reads.
-  `inputs`: (path, what) pairs, e.g. (args.world, "the --world file"), those that do not
-  exist (a seed, a built-in name) passed over. A file input may be neither the output
-  file `path` nor, for an output directory (`writes` given: the names the command writes
-  in it, a name ending in "/" a folder of them), one of those files or inside those
-  folders. A directory input (a run directory) may not hold the output at all, but for
-  the paths `own` (what the command writes there itself, e.g. RUN/policy.npz). Paths
-  compare resolved (links followed), so another spelling of an input is refused too."""
-  out = Path(path)
-  targets = [(out, False)] + ([] if writes is None else
-                              [(out / n.rstrip("/"), n.endswith("/")) for n in writes])
-  mine = {Path(p).resolve() for p in own}
-  for given, what in inputs:
-    if given is None or str(given) == "" or not Path(given).exists():
-      continue
-    source = Path(given).resolve()
-    if source.is_dir():
-      place = out.resolve()  # an output directory, or the file
-      if (place == source or source in place.parents) and place not in mine:
-        hint = f" (or {Path(own[0])})" if own else ""
-        raise OutputError(f"{flag} {path}: inside {what} {given}, which this command reads; "
-                          f"give a path outside it{hint}")
-      continue
-    for target, folder in targets:
-      place = target.resolve()
-      if place == source or (folder and place in source.parents) or (
-          target.exists() and os.path.samefile(target, source)):
-        where = "is" if target == out else f"would write {target.name} over"
-        raise OutputError(f"{flag} {path}: {where} {what} {given}, an input of this command; "
-                          "give another path")
 
 
 @contextlib.contextmanager

@@ -178,7 +178,7 @@ WRITES = ("results.json", "results.md", "trajectories.png", "videos/", "report.j
 
 
 def _inputs(args) -> list[tuple]:
-  """(path, what) of the files and run directory the flags name (`atomic.check_not_input`):
+  """(path, what) of the files and run directory the flags name (`outputs.check_not_input`):
   --out may write over none of them."""
   from mjxvine.rundir.checkpoints import run_dir_of
   policy = Path(args.policy)
