@@ -45,11 +45,18 @@ MAX_YAML_BYTES = 1 << 20  # 1 MiB: a config or robot file is a few KB
 MAX_YAML_DEPTH = 16  # mappings and lists inside each other; a config needs 3
 
 
+def escaped(text: str) -> str:
+  """`text` on one line: control and other unprintable characters (newlines, ANSI escapes)
+  escaped as Python writes them; uncut."""
+  return text if text.isprintable() else "".join(
+      c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def clean(text: str, limit: int = 200) -> str:
-  """`text` for a one-line message: at most `limit` characters ("..." where cut), control
-  and other unprintable characters (newlines, ANSI escapes) escaped as Python writes them."""
+  """`text` for a one-line message: at most `limit` characters ("..." where cut), escaped
+  (`escaped`)."""
   head = text[:limit + 1]
-  out = "".join(c if c.isprintable() else repr(c)[1:-1] for c in head)
+  out = escaped(head)
   return out if len(out) <= limit and len(text) <= limit else out[:max(limit - 3, 0)] + "..."
 
 

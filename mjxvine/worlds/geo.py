@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from mjxvine.config import WorldConfig
-from mjxvine.robot_files import clean, short_repr
+from mjxvine.robot_files import clean, escaped, short_repr
 from mjxvine.worlds.blocks import MAX_BLOCK_M, BlockFrame, vineyard_from_rows
 from mjxvine.worlds.geo_csv import read_csv_rows
 from mjxvine.worlds.geodesy import (WGS84_A, WGS84_E2, ecef, local_to_lonlat,  # noqa: F401
@@ -90,16 +90,10 @@ def read_vineyard(path, cfg: WorldConfig, *, robot_width_m: float,
     if suffix == ".csv":
       return _read_csv(path, cfg, **common)
   except WorldFileError as e:  # the path too may hold a newline or an escape sequence
-    raise WorldFileError(_printable(str(e))) from None
-  raise WorldFileError(_printable(f"{path}: not a vineyard file: give a .geojson (rows in "
-                                  "WGS84 longitude, latitude) or a .csv (row,x_m,y_m in "
-                                  "metres)"))
-
-
-def _printable(text: str) -> str:
-  """`text` on one line: control and other unprintable characters escaped (uncut)."""
-  return text if text.isprintable() else "".join(
-      c if c.isprintable() else repr(c)[1:-1] for c in text)
+    raise WorldFileError(escaped(str(e))) from None
+  raise WorldFileError(escaped(f"{path}: not a vineyard file: give a .geojson (rows in "
+                               "WGS84 longitude, latitude) or a .csv (row,x_m,y_m in "
+                               "metres)"))
 
 
 def _quote(v) -> str:

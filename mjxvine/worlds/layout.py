@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mjxvine.config import WorldConfig
+from mjxvine.robot_files import escaped
 
 TEST_LANE_SHAPES = ("straight", "straight", "hybrid", "curved", "curved")
 CENTERLINE_STEP_M = 0.25  # sampling of lane centerlines
@@ -369,9 +370,7 @@ def load_world(path: str | Path) -> Vineyard:
   try:
     return _load_world(Path(path))
   except WorldFileError as e:  # a path or a field's value may hold control characters
-    text = str(e)
-    raise WorldFileError(text if text.isprintable() else "".join(
-        c if c.isprintable() else repr(c)[1:-1] for c in text)) from None
+    raise WorldFileError(escaped(str(e))) from None
 
 
 def _load_world(path: Path) -> Vineyard:
