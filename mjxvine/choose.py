@@ -2,6 +2,7 @@
 
   python -m mjxvine.choose --policy RUN_DIR            # what the trainer does at its end
   python -m mjxvine.choose --policy RUN_DIR --set train.select_candidates=6
+  python -m mjxvine.choose --policy RUN_DIR --every   # the validation curve: every policy
 
 (`python -m mjxvine.select`, its old name, still answers.)
 
@@ -9,10 +10,10 @@ The fresh-start evaluations during training (`mjxvine.evaluation.starts`, 2 x
 train.eval_starts starts on the training rows) are a noisy yardstick: two checkpoints that
 score alike there can differ from 0 to 100 % on test-kind worlds. With
 `train.select_worlds` > 0 the trainer keeps every evaluated policy
-(RUN/eval_policies/env<steps>.npz) and, after training, drives the
-`train.select_candidates` best of them by the fresh-start rule
-(`choice.fresh_start_score`: the weaker direction's success, then the lower MAE) through a
-validation protocol:
+(RUN/eval_policies/env<steps>.npz) and, after training, drives the last of them, then (when
+it misses the bar below) the `train.select_candidates - 1` best of the others by the
+fresh-start rule (`choice.fresh_start_score`: the weaker direction's success, then the
+lower MAE) through a validation protocol:
 
 - every lane-direction of `train.select_worlds` validation worlds, test-kind worlds of seeds
   100 and up (test tables use seeds below 100), 2 runs each, at `eval.noise_factor`;
@@ -20,7 +21,9 @@ validation protocol:
   noise test's rows and runs).
 
 One batched rollout per candidate (`rollout.rollout_cases`, rollout seed 0: the same
-cases and keys for every candidate). The candidates that meet the bar (at least
+cases and keys for every candidate). When the last policy meets the bar it is chosen
+and no other drives; once a candidate has met it, a later one stops as soon as it cannot
+(`stopped_early` in the record). The candidates that meet the bar (at least
 95 % of the validation worlds' runs, and the noise rows at least as
 often as the paper's) rank first, by the lower MAE (the mean over the validation worlds
 of each world's mean of rows); the others after them, by their successes, then the MAE
@@ -51,6 +54,10 @@ def parser(prog: str = "python -m mjxvine.choose") -> argparse.ArgumentParser:
   p.add_argument("--policy", required=True, type=Path, metavar="RUN",
                  help="the run directory whose best policy to choose (its config.yaml and "
                       "RUN/eval_policies/)")
+  p.add_argument("--every", action="store_true",
+                 help="drive every kept policy, in the order of training, none stopped "
+                 "early: the run's validation curve in selection.json (the choice among "
+                 "them as usual)")
   p.add_argument("--member", type=int, default=None, metavar="K",
                  help="of a run of several members (--num-seeds, --sweep): choose for "
                  "member K alone (default: for each member)")
@@ -79,7 +86,7 @@ def main(argv=None, prog: str = "python -m mjxvine.choose") -> int:
       from mjxvine.evaluation import choice
       chosen = (args.member,) if args.member is not None and count > 1 else None
       for k in chosen or choice.member_ids(count):
-        choice.select(cfg, run_dir, member=k)
+        choice.select(cfg, run_dir, member=k, every=args.every)
   except (ConfigError, FileNotFoundError, ValueError, RunDirBusy) as e:
     return input_error(e)
   return 0

@@ -252,14 +252,15 @@ class TrainConfig:
                                 "paper's), to compare checkpoint choices afterwards")
   select_worlds: int = _f(0, 0, 64, doc="choose the best checkpoint on this many "
                           "validation worlds (test-kind worlds of seeds 100 and up, never "
-                          "a test table's) among the train.select_candidates "
-                          "best fresh-start evaluations, after training, for each member "
+                          "a test table's) among train.select_candidates evaluated "
+                          "policies, the last first, after training, for each member "
                           "(mjxvine.evaluation.choice; writes their policies as "
                           "train.keep_eval_policies does; 0: the best fresh-start "
                           "evaluation is the best checkpoint)")
-  select_candidates: int = _f(4, 1, 1024, doc="fresh-start evaluations scored on the "
-                              "validation worlds: the best by the weaker direction's "
-                              "success, then the lower MAE")
+  select_candidates: int = _f(4, 1, 1024, doc="evaluated policies scored on the "
+                              "validation worlds at most: the last, then (when it misses "
+                              "the bar) the best others by the weaker direction's "
+                              "fresh-start success, then the lower MAE")
   video: bool = _f(False, doc="the closing report films the best policy on the test world "
                    "(lanes 1F and 4R): MP4s in RUN/eval/videos/ (needs OpenGL and "
                    "imageio-ffmpeg, `pip install mjxvine[video]`; eval.runs_after_train >= 1)")

@@ -174,7 +174,7 @@ def run(cfg: Config, run_dir: Path, args) -> int:
     print(json.dumps({k: row.get(k) for k in (
         "env_steps", "episodes", "return_mean", "success_rate", "sps",
         "best_eval_success_forward", "best_eval_success_reverse", "best_eval_mae_m",
-        "eval_test_success", "eval_test_runs", "stopped")}))
+        "eval_test_success", "eval_test_runs", "stopped", "profile")}))
   return 0
 
 

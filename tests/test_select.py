@@ -8,6 +8,8 @@ selection resumes from its record; bad requests fail in one line."""
 import json
 import shutil
 
+import jax
+import jax.numpy as jp
 import numpy as np
 import pytest
 from test_train import EVAL, _cfg
@@ -38,9 +40,8 @@ def test_the_trainer_chooses_on_the_validation_world(selected_run):
   rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
   evals = {r["env_steps"]: r for r in rows if "eval_success_forward" in r}
   assert sorted(evals) == [40, 80]
-  # the candidates: both evaluations, best first by the fresh-start rule (earlier of equals)
-  order = sorted(evals, key=lambda s: choice.fresh_start_score(evals[s]), reverse=True)
-  assert [c["env_steps"] for c in record["candidates"]] == order
+  # the candidates: the last first; it cannot meet the bar in 12 steps, so the other drives
+  assert [c["env_steps"] for c in record["candidates"]] == [80, 40]
   assert record["protocol"]["worlds"] == [100]
   lanes = len(choice.validation_worlds(load_config(run / "config.yaml"))[0].lanes)
   for c in record["candidates"]:
@@ -104,9 +105,12 @@ def test_fresh_start_score_orders_the_weaker_direction_then_mae():
       row(0.6, 0.6, 0.2))
   assert choice.fresh_start_score(row(0.5, 0.5, 0.1)) > choice.fresh_start_score(
       row(0.5, 0.9, 0.2))
-  evals = {40: row(0.5, 0.5, 0.1), 80: row(0.5, 0.5, 0.1), 120: row(0.9, 0.8, 0.3)}
-  # best first, the earlier of equals first; only kept policies
+  evals = {40: row(0.5, 0.5, 0.1), 80: row(0.5, 0.5, 0.1), 120: row(0.9, 0.8, 0.3),
+           160: row(0.1, 0.1, 0.5)}
+  # the last first, then the others best first, the earlier of equals first; only kept
+  assert choice.candidates(evals, {40, 80, 120, 160}, 3) == [160, 120, 40]
   assert choice.candidates(evals, {40, 80, 120}, 3) == [120, 40, 80]
+  assert choice.candidates(evals, {80, 120, 160}, 1) == [160]
   assert choice.candidates(evals, {80}, 3) == [80]
 
 
@@ -190,3 +194,67 @@ def test_each_member_of_a_seeds_run_chooses_its_own(tmp_path, capsys):
   # the command line chooses again for one member, from its record (nothing driven again)
   assert choose.main(["--policy", str(run), "--member", "1"]) == 0
   assert "member 1: selected the policy of" in capsys.readouterr().out
+
+
+def _with_a_third_policy(run, tmp_path):
+  """A copy of the selected run with a kept policy at 60 env steps whose fresh-start
+  evaluation is the best of the three (so the candidates are 80, the last, then 60, 40)."""
+  copy = tmp_path / "three"
+  shutil.copytree(run, copy)
+  (copy / "selection.json").unlink()
+  shutil.copy(copy / "eval_policies" / "env40.npz", copy / "eval_policies" / "env60.npz")
+  best = {"member": 0, "env_steps": 60, "eval_success_forward": 1.0,
+          "eval_success_reverse": 1.0, "eval_mae_m": 0.01}
+  with open(copy / "metrics.jsonl", "a") as f:
+    f.write(json.dumps(best) + "\n")
+  return copy
+
+
+@pytest.mark.parametrize("meeting, every, driven, stopping, chosen", [
+    ({80}, False, [80], [False], 80),                      # the last meets it: alone
+    ({60}, False, [80, 60, 40], [False, False, True], 60),  # after 60 met it, 40 may stop
+    ({60}, True, [40, 60, 80], [False, False, False], 60),  # every one, in order, whole
+])
+def test_the_last_drives_first_and_a_candidate_stops_once_it_cannot_win(
+    selected_run, tmp_path, monkeypatch, meeting, every, driven, stopping, chosen):
+  run = _with_a_third_policy(selected_run[0], tmp_path)
+  calls = []
+
+  def score(cfg, path, worlds, runs, noise_factors=(), below_bar_stops=False):
+    steps = int(path.stem[3:])
+    calls.append((steps, below_bar_stops))
+    return {**_scores(20 if steps in meeting else 10, (3, 3), (3, 3), 0.05 + steps / 1e4),
+            "episodes": 32}
+
+  monkeypatch.setattr(choice, "score_policy", score)
+  cfg = load_config(run / "config.yaml", ["train.select_candidates=3"])
+  record = choice.select(cfg, run, say=lambda *a: None, every=every)
+  assert calls == list(zip(driven, stopping))
+  assert [c["env_steps"] for c in record["candidates"]] == driven
+  assert record["selected"] == chosen
+  assert (run / "selected.npz").read_bytes() == (
+      run / "eval_policies" / f"env{chosen}.npz").read_bytes()
+
+
+def test_a_rollout_stops_when_asked_and_unfinished_runs_time_out():
+  from test_view import ToyEnv
+  from mjxvine.env import OUTCOMES
+  from mjxvine.evaluation import rollout
+
+  def crawl(state, key):  # 5 mm per step: no run ends within 200 steps
+    return jp.array([0.005, 0.0])
+
+  starts = rollout.EnvStarts(lanes=[0, 1], directions=[1.0, -1.0])
+  seen = []
+
+  def stop(outcome):
+    seen.append(outcome.copy())
+    return True
+
+  key = jax.random.PRNGKey(0)
+  _, _, alive, outcome, steps, _ = rollout.rollout(ToyEnv(), crawl, starts, key, 200, stop=stop)
+  assert len(seen) == 1 and list(seen[0]) == [0, 0]  # asked once, after the first chunk
+  assert alive.shape[0] == rollout.CHUNK_STEPS and list(steps) == [rollout.CHUNK_STEPS] * 2
+  assert [OUTCOMES[c] for c in outcome] == ["timeout", "timeout"]
+  _, _, alive, _, _, _ = rollout.rollout(ToyEnv(), crawl, starts, key, 200)
+  assert alive.shape[0] == 200  # without a stop: to the limit

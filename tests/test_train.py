@@ -4,6 +4,7 @@ per process on the config)."""
 
 import json
 import shutil
+import time
 
 import jax
 import jax.numpy as jp
@@ -36,11 +37,33 @@ def _cfg(steps, *extra):
 EVAL = ("train.eval_every_chunks=2", "train.eval_starts=2", "train.keep_eval_policies=true")
 
 
+WALL_S = {}  # the first run's wall-clock, as its caller measured it
+
+
 @pytest.fixture(scope="module")
 def first_run(tmp_path_factory):
   run = tmp_path_factory.mktemp("run")
+  t0 = time.perf_counter()
   row = loop.train(_cfg(80, *EVAL), run, quiet=True, evaluate_at_end=False)
+  WALL_S["first_run"] = time.perf_counter() - t0
   return run, row
+
+
+def test_the_profile_by_phase_adds_up_to_the_wall_clock(first_run):
+  """run.json and the last row keep the time by phase; the phases, each measured on its
+  own, add up to the wall-clock of the call within 5 %."""
+  run, row = first_run
+  profile = row["profile"]
+  assert json.loads((run / "run.json").read_text())["profile"] == profile
+  phases = profile["phases_s"]
+  for name in ("setup", "collection", "gradient_steps", "fresh_start_evaluations", "logs",
+               "checkpoints"):
+    assert phases[name] > 0, name
+  if not trainer.scan_chunks():  # the host path splits collection from gradient steps
+    assert "training_chunks" not in phases
+  wall = WALL_S["first_run"]
+  assert sum(phases.values()) == pytest.approx(wall, rel=0.05)
+  assert profile["wall_s"] == pytest.approx(wall, rel=0.05)
 
 
 def test_run_writes_logs_checkpoints_and_curve(first_run):
@@ -313,4 +336,5 @@ def test_a_wall_clock_stop_says_so_in_the_last_line_and_the_record(tmp_path, cap
   last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
   assert last["stopped"].startswith("train.max_minutes = 0.0001 reached after chunk 1")
   assert json.loads((run / "run.json").read_text())["stopped"] == last["stopped"]
+  assert {"setup", "collection", "checkpoints"} <= set(last["profile"]["phases_s"])
 

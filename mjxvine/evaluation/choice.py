@@ -28,6 +28,7 @@ import numpy as np
 
 from mjxvine.atomic import write_bytes, write_text
 from mjxvine.config import Config
+from mjxvine.episodes import OUTCOMES
 from mjxvine.evaluation import paper
 from mjxvine.evaluation.metrics import summarize
 from mjxvine.evaluation.rollout import Cases, PolicySource, all_lanes, rollout_cases
@@ -38,6 +39,7 @@ FIRST_WORLD_SEED = 100  # validation worlds: test-kind seeds 100 and up (test ta
 RUNS = 2  # runs per lane-direction of a validation world
 NOISE_FACTORS = (8.0, 10.0)  # the noise test's factors on the first validation world
 SUCCESS_BAR = 0.95  # the share of runs a candidate must drive to rank by its offset
+SUCCESS_CODE = OUTCOMES.index("success")
 
 
 # ---------------------------------------------------------------------------- ranking rules
@@ -107,11 +109,14 @@ def trainer_evaluations(run_dir: Path, member: int = 0) -> dict[int, dict]:
 
 
 def candidates(evaluations: dict[int, dict], kept: set[int], k: int) -> list[int]:
-  """The env steps of the `k` best evaluations by `fresh_start_score` among those whose
-  policy was kept, best first (the earlier of equal scores first, as the trainer keeps
-  the first of equals as checkpoints/best)."""
+  """The env steps of `k` evaluations whose policy was kept: the last first, then the
+  `k - 1` best of the others by `fresh_start_score`, best first (the earlier of equal
+  scores first, as the trainer keeps the first of equals as checkpoints/best)."""
   steps = sorted(s for s in evaluations if s in kept)
-  return sorted(steps, key=lambda s: fresh_start_score(evaluations[s]), reverse=True)[:k]
+  if not steps:
+    return []
+  others = sorted(steps[:-1], key=lambda s: fresh_start_score(evaluations[s]), reverse=True)
+  return [steps[-1], *others[:k - 1]]
 
 
 # ---------------------------------------------------------------------------- validation
@@ -134,13 +139,27 @@ def validation_cases(worlds: list, runs: int, noise0: float, noise_factors) -> t
 
 
 def score_policy(cfg: Config, path: Path, worlds: list, runs: int,
-                 noise_factors=()) -> dict:
+                 noise_factors=(), below_bar_stops: bool = False) -> dict:
   """One policy file's validation scores: {"worlds": {seed: {success, episodes,
   mae_m_rows, rows_status, failed}}, "noise": {factor: {"1F": successes, "4F": ...}},
   "success", "episodes" (over all of it), "mae_m" (the mean of the worlds' mean-of-rows
-  MAE; None when no world has one), "wall_s"}."""
+  MAE; None when no world has one), "wall_s"}. `below_bar_stops`: the rollout stops once
+  so many of the worlds' runs failed that the policy cannot meet `SUCCESS_BAR`; its
+  scores then hold "stopped_early": True and count the runs not finished as failed."""
   cases, tables, noise = validation_cases(worlds, runs, cfg.eval.noise_factor, noise_factors)
-  raw, _ = rollout_cases(cfg, PolicySource(str(path)), worlds, cases)
+  world_cases = np.concatenate([np.asarray(t, int) for t in tables])
+  allowed = (1 - SUCCESS_BAR) * len(world_cases)  # failures the bar allows
+  cut = []  # set when the rollout stopped with runs unfinished
+
+  def below_bar(outcome: np.ndarray) -> bool:
+    ended = outcome[world_cases]
+    if int(np.sum((ended != 0) & (ended != SUCCESS_CODE))) <= allowed:
+      return False
+    cut.append(bool(np.any(outcome == 0)))
+    return True
+
+  raw, _ = rollout_cases(cfg, PolicySource(str(path)), worlds, cases,
+                         stop=below_bar if below_bar_stops else None)
   out = {"worlds": {}, "noise": {}}
   for world, idx in zip(worlds, tables):
     doc = summarize(cfg, world, cases, idx, raw)
@@ -159,6 +178,8 @@ def score_policy(cfg: Config, path: Path, worlds: list, runs: int,
   out["episodes"] = len(cases)
   out["mae_m"] = float(np.mean(maes)) if maes else None
   out["wall_s"] = raw["wall_s"]
+  if any(cut):
+    out["stopped_early"] = True
   return out
 
 
@@ -174,21 +195,29 @@ def protocol(cfg: Config) -> dict:
 
 
 # ---------------------------------------------------------------------------- the choice
-def select(cfg: Config, run_dir: Path, say=print, member: int | None = None) -> dict:
+def select(cfg: Config, run_dir: Path, say=print, member: int | None = None,
+           every: bool = False) -> dict:
   """Chooses the run's best policy on the validation worlds (the module's docstring), or
   one member's of a run of several (`member`: its own evaluations and kept policies);
   writes the selection record and the chosen policy (`checkpoints.selection_files`:
   RUN/selection.json and RUN/selected.npz, or RUN/selected_members/selection<k>.json and
   member<k>.npz) and returns the record: {"protocol", "candidates": [{"env_steps",
-  "trainer": eval_* values, "validation": `score_policy`}, best first by
-  `fresh_start_score`], "selected": env steps}."""
+  "trainer": eval_* values, "validation": `score_policy`}, in the order driven],
+  "selected": env steps}.
+
+  The choice is a safeguard: the last policy drives first, and when it meets the bar it
+  is chosen and nothing else drives. Otherwise the others (`candidates`) drive, each
+  stopped as soon as it cannot meet the bar once one has met it (it could not be chosen).
+  `every`: every kept policy drives, in the order of training, none stopped early (the
+  validation curve of the run); the choice among them by `rank`."""
   run_dir = Path(run_dir)
   if cfg.train.select_worlds < 1:
     raise ValueError(f"{run_dir}: train.select_worlds = 0 in its config: give --set "
                      "train.select_worlds=N (N validation worlds)")
   evaluations = trainer_evaluations(run_dir, member or 0)
   kept = kept_policies(run_dir, member)
-  chosen = candidates(evaluations, set(kept), cfg.train.select_candidates)
+  chosen = (sorted(s for s in evaluations if s in kept) if every else
+            candidates(evaluations, set(kept), cfg.train.select_candidates))
   if not chosen:
     where = policy_file(run_dir, 0, member).parent.relative_to(run_dir)
     raise FileNotFoundError(f"{run_dir}: no evaluated policy to choose from (RUN/{where}/"
@@ -197,21 +226,28 @@ def select(cfg: Config, run_dir: Path, say=print, member: int | None = None) -> 
   selected_path.parent.mkdir(parents=True, exist_ok=True)
   old = json.loads(record_path.read_text()) if record_path.is_file() else {}
   record = {"protocol": protocol(cfg), "candidates": [], "selected": None}
-  done = ({c["env_steps"]: c["validation"] for c in old.get("candidates", [])}
+  done = ({c["env_steps"]: c["validation"] for c in old.get("candidates", [])
+           if not (every and c["validation"].get("stopped_early"))}
           if old.get("protocol") == record["protocol"] else {})
   worlds = validation_worlds(cfg)
   who = "" if member is None else f"member {member}: "
   say(f"{who}choosing the best of {len(chosen)} evaluated policies "
       f"({', '.join(map(str, chosen))} env steps) on validation worlds "
       f"{record['protocol']['worlds']}...")
-  bar = SUCCESS_BAR
+  bar, met = SUCCESS_BAR, False
   for steps in chosen:
-    scores = done.get(steps) or score_policy(cfg, kept[steps], worlds, RUNS, NOISE_FACTORS)
+    scores = done.get(steps) or score_policy(cfg, kept[steps], worlds, RUNS, NOISE_FACTORS,
+                                             below_bar_stops=met and not every)
     record["candidates"].append({"env_steps": steps, "trainer": evaluations[steps],
                                  "validation": scores})
     write_text(record_path, json.dumps(record, indent=1))  # resumable after each candidate
-    meets = " (meets the bar)" if meets_bar(scores, bar) else ""
-    say(f"  {steps:>8} env steps: {summary(scores)}{meets}")
+    meets = meets_bar(scores, bar)
+    say(f"  {steps:>8} env steps: {summary(scores)}"
+        + (" (meets the bar)" if meets else ""))
+    met = met or meets
+    if meets and not every and steps == chosen[0]:
+      say(f"{who}the last policy meets the bar: no other drives")
+      break
   best = max(record["candidates"], key=lambda c: rank(c["validation"], bar))  # first of equals
   record["selected"] = best["env_steps"]
   # over an earlier choice, whole: it stays until this one is ready (a stop keeps it)
@@ -228,4 +264,5 @@ def summary(scores: dict) -> str:
   noise = ", ".join(f"noise {k} {sum(v.values())}/{paper.NOISE_RUNS * len(paper.NOISE_LANES)}"
                     for k, v in scores["noise"].items())
   mae = "-" if scores["mae_m"] is None else f"{fmt(scores['mae_m'])} m"
-  return f"{scores['success']}/{scores['episodes']} ({worlds}; {noise}), MAE {mae}"
+  cut = ", stopped early: it cannot meet the bar" if scores.get("stopped_early") else ""
+  return f"{scores['success']}/{scores['episodes']} ({worlds}; {noise}), MAE {mae}{cut}"

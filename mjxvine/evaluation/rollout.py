@@ -13,7 +13,7 @@ lanes and directions +1/-1.
 from __future__ import annotations
 
 import time
-from typing import Iterator, NamedTuple, Sequence
+from typing import Callable, Iterator, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jp
@@ -91,9 +91,12 @@ class EnvStarts(NamedTuple):
 
 
 def rollout(env, policy: Policy, starts: EnvStarts, key, max_steps: int,
-            record: Sequence[int] = ()):
+            record: Sequence[int] = (), stop: Callable[[np.ndarray], bool] | None = None):
   """Runs one episode per start of `starts` (`EnvStarts`, B of them) from its lane's
-  start, batched.
+  start, batched. `stop(outcome)`, asked after every `CHUNK_STEPS` steps with the
+  outcome codes so far ((B,), 0 for an episode still running): True ends the rollout
+  there (an outcome that can no longer change a decision); the episodes still running
+  then count as timeouts.
 
   Returns numpy arrays over time T and envs B: xy (T, B, 2), action (T, B, 2),
   alive (T, B) (step taken before the episode ended, inclusive), outcome (B,), steps (B,),
@@ -136,7 +139,7 @@ def rollout(env, policy: Policy, starts: EnvStarts, key, max_steps: int,
     act.append(np.asarray(a))
     alive.append(al)
     recorded.append(jax.tree.map(np.asarray, fr))
-    if not np.asarray(carry[1]).any():
+    if not np.asarray(carry[1]).any() or (stop is not None and stop(outcome)):
       break
   xy, act, alive = (np.concatenate(x)[:max_steps] for x in (xy, act, alive))
   outcome[outcome == 0] = OUTCOMES.index("timeout")
@@ -220,12 +223,12 @@ class PolicySource(NamedTuple):
 
 
 def rollout_cases(cfg: Config, source: PolicySource, worlds: list, cases, *,
-                  seed: int = 0, record: Sequence[int] = ()):
+                  seed: int = 0, record: Sequence[int] = (), stop=None):
   """One batched rollout of every case: (world index, lane (1-based), direction "F"/"R",
   noise factor) tuples over `worlds` (`Vineyard`s; see `Cases`), driven by the policy of
-  `source` with rollout key `seed`. Returns (raw, policy name) with raw = dict of the
-  `rollout` arrays (xy, act, alive, outcome, steps, frames of the cases `record`) and
-  wall_s (s)."""
+  `source` with rollout key `seed` (`stop`: see `rollout`). Returns (raw, policy name)
+  with raw = dict of the `rollout` arrays (xy, act, alive, outcome, steps, frames of the
+  cases `record`) and wall_s (s)."""
   from mjxvine.env import VineyardEnv  # (the env's imports are heavy: only when needed)
   # the protocol's episode limits (`lane_steps`, applied by the env per lane), whatever
   # the training episodes were
@@ -240,7 +243,7 @@ def rollout_cases(cfg: Config, source: PolicySource, worlds: list, cases, *,
                      [w for w, _, _, _ in cases], [n for _, _, _, n in cases])
   t0 = time.time()
   xy, act, alive, outcome, steps, frames = rollout(
-      env, policy, starts, jax.random.PRNGKey(seed), max(limits), record=record)
+      env, policy, starts, jax.random.PRNGKey(seed), max(limits), record=record, stop=stop)
   raw = dict(xy=xy, act=act, alive=alive, outcome=outcome, steps=steps, frames=frames,
              wall_s=time.time() - t0)
   return raw, name

@@ -93,6 +93,7 @@ class FreshStartEvaluation:
   are the best so far, each member's actor as best_members/member<k>.npz when its own
   are (`MemberBest`), and, for the choice on validation worlds, every evaluated policy
   (of each member: `choice.policy_file`)."""
+  phase = "fresh_start_evaluations"  # of the run's profile (`training.profile`)
 
   def __init__(self, cfg: Config, run_dir: Path, start_eval, ckpt: Checkpoints, seeds: int,
                total_chunks: int, primary: bool, say: Callable):
@@ -143,6 +144,7 @@ class FreshStartEvaluation:
 class ChunkLog:
   """One metrics.jsonl row per member and chunk (`row`), also to TensorBoard and the
   progress bar; then the TrainState's log sums are reset for the next chunk."""
+  phase = "logs"
 
   def __init__(self, cfg: Config, members: list[dict], logger: Logger):
     self.cfg, self.members, self.logger = cfg, members, logger
@@ -189,6 +191,7 @@ class Checkpointing:
   """A checkpoint every `train.checkpoint_every_chunks` chunks and after the last; at the
   end of a loop that stopped early (a signal, `train.max_minutes`), one of where it
   stopped."""
+  phase = "checkpoints"
 
   def __init__(self, ckpt: Checkpoints, every: int, total_chunks: int, saved: int):
     self.ckpt, self.every, self.total_chunks, self.saved = ckpt, every, total_chunks, saved

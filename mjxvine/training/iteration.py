@@ -16,6 +16,7 @@ import dataclasses
 import functools
 import itertools
 import sys
+import time
 from typing import Any, Callable, NamedTuple
 
 import flax.struct
@@ -244,33 +245,45 @@ def compiled(cfg: Config, seeds: int, env):
   idle = {k: jp.zeros(v.shape, v.dtype) for k, v in metric_shapes.items()}
   idle["learning"] = jp.zeros(lead)
   n = cfg.env.num_envs
-  learned = False  # whether the gradient step has been compiled (said once)
+  called = set()  # the programs called once (compiled): their first call is "compile"
 
-  def host_chunk(ts):
-    nonlocal learned
+  def host_chunk(ts, profile=None):
+    """One chunk on the host path. With `profile` (`training.profile.Profile`) each call
+    is timed to the end of its work and added to "compile" (a program's first call),
+    "collection" or "gradient_steps" (the loop adds the host's bookkeeping around them)."""
+
+    def call(phase: str, program, *args):
+      if profile is None:  # asynchronous, untimed
+        called.add(id(program))
+        return program(*args)
+      t0 = time.perf_counter()
+      out = jax.block_until_ready(program(*args))
+      dt = time.perf_counter() - t0
+      profile.add(phase if id(program) in called else "compile", dt)
+      called.add(id(program))
+      return out
+
     rows = []
     steps, written = (int(np.max(x)) for x in jax.device_get((ts.env_steps,
                                                               ts.buffer.rows_written)))
     for _ in range(cfg.train.iters_per_chunk):
       written += 1
       learn = bool(learning(cfg, steps, written))
-      ts, k_update, _ = collect_fn(ts)
+      ts, k_update, _ = call("collection", collect_fn, ts)
       steps += n
       if not learn:
         rows.append(idle)
         continue
-      if not learned:
-        learned = True
-        if jax.process_index() == 0:  # with jax.distributed, process 0 alone prints
-          print(f"learning starts at env step {steps - n}: compiling the gradient step...",
-                file=sys.stderr, flush=True)
+      if id(learn_fn) not in called and jax.process_index() == 0:  # process 0 alone prints
+        print(f"learning starts at env step {steps - n}: compiling the gradient step...",
+              file=sys.stderr, flush=True)
       if one_call:
-        ts, m = learn_fn(ts, k_update)
+        ts, m = call("gradient_steps", learn_fn, ts, k_update)
         rows.append({**m, "learning": jp.ones(lead)})
         continue
       keys = split_fn(k_update)
       for i in range(g):
-        ts, m = learn_fn(ts, keys[i] if seeds == 1 else keys[:, i])
+        ts, m = call("gradient_steps", learn_fn, ts, keys[i] if seeds == 1 else keys[:, i])
         rows.append({**m, "learning": jp.ones(lead)})
     # iterations axis after the seeds axis, if any
     stacked = jax.tree.map(lambda *x: jp.stack(x, axis=0 if seeds == 1 else 1), *rows)

@@ -43,7 +43,9 @@ from mjxvine.rundir import (Interrupted, ResumeRefused, RunDirBusy, RunLock, Sto
 from mjxvine.rundir.checkpoints import Checkpoints, remove_partial_steps
 from mjxvine.rundir.logs import Logger, clear_events, plot_learning_curve, truncate_metrics
 from mjxvine.training import distributed, hooks, report
-from mjxvine.training.iteration import NonFiniteError, compile_key, init_members, sweep_members
+from mjxvine.training.iteration import (NonFiniteError, compile_key, init_members, scan_chunks,
+                                        sweep_members)
+from mjxvine.training.profile import Profile
 from mjxvine.training.programs import compiled_trainer, default_env, start_evaluator
 
 
@@ -182,6 +184,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   First of all, a run that would not fit in memory is refused (`check_memory`:
   ConfigError).
   """
+  profile = Profile()  # where the wall-clock goes (run.json, the last line)
   primary = jax.process_index() == 0
   check_memory(cfg, env)  # before the run directory is made or anything compiled
   run_dir.mkdir(parents=True, exist_ok=True)
@@ -196,7 +199,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   try:
     with atomic.on_stop(functools.partial(_stop_cleanup, run_dir, lock)):
       return _train(cfg, run_dir, resume, evaluate_at_end, quiet or not primary, env,
-                    primary, restart)
+                    primary, restart, profile)
   finally:
     if lock is not None:
       lock.release()
@@ -350,9 +353,11 @@ def _check_finite(m: dict, ts, chunk_index: int, ckpt: Checkpoints) -> None:
         f"checkpoint is chunk {ckpt.manager.latest_step()} in {ckpt.dir}")
 
 
-def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Callable):
+def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Callable,
+          profile: Profile):
   """Trains chunks until the budget, `train.max_minutes` or a stop signal; each chunk goes
-  through `chunk_hooks` in order. Returns (TrainState, chunks done, signal number or 0)."""
+  through `chunk_hooks` in order (each hook's time to its `phase` of `profile`). Returns
+  (TrainState, chunks done, signal number or 0)."""
   ts, chunk_index = run.ts, run.chunk_index
   t_compile, t_start, signum = None, time.time(), 0
   run.stopped = None
@@ -371,14 +376,18 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
     # a signal during a compilation ends the run in seconds; one during a chunk lets the
     # chunk and its checkpoint end
     atomic.set_stop_grace(atomic.STOP_GRACE_S if first else atomic.CHUNK_STOP_GRACE_S)
-    t0 = time.time()
+    t0, timed = time.perf_counter(), profile.total()
     try:
-      ts, m = run.chunk_fn(ts)
+      ts, m = run.chunk_fn(ts) if scan_chunks() else run.chunk_fn(ts, profile)
       m = jax.device_get(m)
     finally:
       if first:
         stops.stop_now = stop_now
-    dt = time.time() - t0
+    dt = time.perf_counter() - t0
+    # one program (scan): the chunk is one phase; the host path timed its calls and the
+    # rest of the chunk is its bookkeeping
+    profile.add(("compile" if first else "training_chunks") if scan_chunks() else
+                "collection", dt - (profile.total() - timed))
     if t_compile is None:
       t_compile = dt
       say(f"first chunk done in {dt:.0f} s, compilation included")
@@ -386,7 +395,8 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
     chunk_index += 1
     chunk = hooks.Chunk(chunk_index, ts, m, dt, t_compile, [])
     for hook in chunk_hooks:
-      hook.after_chunk(chunk)
+      with profile.phase(hook.phase):
+        hook.after_chunk(chunk)
     ts = chunk.ts
     # the same decision in every process: a signal to any of them stops all
     signum = distributed.max_over_processes(stops.requested) or (
@@ -397,7 +407,7 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
 
 
 def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quiet: bool,
-           env, primary: bool, restart: bool) -> dict:
+           env, primary: bool, restart: bool, profile: Profile) -> dict:
   say = _say(quiet)
   cfg = nw.resolve_conv_impl(cfg)  # `auto` as the tower it takes here
   phase = ["setup"]  # a signal stops at once but while training (nothing to keep)
@@ -423,10 +433,13 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
     checkpoints = hooks.Checkpointing(run.ckpt, cfg.train.checkpoint_every_chunks,
                                       run.total_chunks, run.chunk_index)
     phase[0] = "training"
+    profile.add("setup", time.perf_counter() - profile.start - profile.total())
     try:
       ts, chunk_index, signum = _loop(
-          cfg, run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say)
-      checkpoints.at_end(ts, chunk_index)  # stopped early (a signal, train.max_minutes)
+          cfg, run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say,
+          profile)
+      with profile.phase("checkpoints"):
+        checkpoints.at_end(ts, chunk_index)  # stopped early (a signal, train.max_minutes)
       atomic.set_stop_grace(atomic.STOP_GRACE_S)
       phase[0] = "closing"
       if signum:
@@ -437,36 +450,46 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
                           f"{chunk_index} ({int(np.max(ts.env_steps))} env steps); "
                           f"checkpoint {chunk_index} written")
       if evaluation is not None:
-        log.last_row.update(evaluation.at_end(ts, chunk_index))
+        with profile.phase("fresh_start_evaluations"):
+          log.last_row.update(evaluation.at_end(ts, chunk_index))
     finally:
-      logger.close()
+      with profile.phase("logs"):
+        logger.close()
     if run.stopped:  # said in the last line and recorded with the run
       log.last_row["stopped"] = run.stopped
       if primary:
         record_fact(run_dir, stopped=run.stopped)
-    return _finish(cfg, run_dir, dataclasses.replace(run, ts=ts), evaluation, log.last_row,
-                   evaluate_at_end, primary, say)
+    row = _finish(cfg, run_dir, dataclasses.replace(run, ts=ts), evaluation, log.last_row,
+                  evaluate_at_end, primary, say, profile)
+    row["profile"] = profile.record()
+    if primary:
+      record_fact(run_dir, profile=row["profile"])
+      say(profile.line())
+    return row
 
 
 def _finish(cfg: Config, run_dir: Path, run: _Run, evaluation, row: dict,
-            evaluate_at_end: bool, primary: bool, say: Callable) -> dict:
+            evaluate_at_end: bool, primary: bool, say: Callable, profile: Profile) -> dict:
   """After the loop (`run` with its last TrainState as `run.ts`): the learning curve, the
   best scores in the last row, the choice on validation worlds and the closing report."""
   from mjxvine.evaluation import choice
   if primary:
-    plot_learning_curve(run_dir)
+    with profile.phase("logs"):
+      plot_learning_curve(run_dir)
   best = evaluation.best if evaluation is not None else run.ckpt.best_scores()
   if best is not None:
     row.update({f"best_{k}": v for k, v in best.items()})
   selected = None
   if run.vineyard and cfg.train.select_worlds and primary and best is not None:
-    records = [choice.select(cfg, run_dir, say, member=k)  # each member its own
-               for k in choice.member_ids(len(run.members))]
+    with profile.phase("choice"):
+      records = [choice.select(cfg, run_dir, say, member=k)  # each member its own
+                 for k in choice.member_ids(len(run.members))]
     selected = records[0]["selected"]
     row["selected_env_steps"] = selected
   if run.vineyard and evaluate_at_end:
     summary = report.RunSummary(run_dir, run.sac, run.ckpt, run.ts, len(run.members), best,
                                 selected)
-    report.closing_report(cfg, summary, row, say, evaluation.start_eval, evaluation.key,
-                          primary)
+    with profile.phase("closing_evaluation"):
+      report.closing_report(cfg, summary, row, say, evaluation.start_eval, evaluation.key,
+                            primary)
   return row
