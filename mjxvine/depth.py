@@ -67,7 +67,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jp
@@ -201,6 +201,17 @@ class DepthCamera:
     """(H, W, 3) float32 ray directions in the camera frame with z = -1 (t = z-depth)."""
     return _rays(self, self.height, self.width)
 
+  def reach(self, half_diagonal: float) -> float:
+    """The farthest (m) from the camera that the centre of an AABB with half extents of
+    norm up to `half_diagonal` (m) can lie and still pass the view culling of
+    `_project_boxes` (a primitive farther away is never drawn). Each of its corners lies
+    within h = half_diagonal of the centre, and one corner is inside each frustum plane:
+    in the camera frame the centre's |x| <= xr (max_depth + 2 h) + h, likewise y, and
+    its z-depth is in [-h, max_depth + h]."""
+    h, far = float(half_diagonal), self.max_depth
+    xr, yr = self.tan_x * (1 - 1 / self.width), self.tan_y * (1 - 1 / self.height)
+    return math.hypot(xr * (far + 2 * h) + h, yr * (far + 2 * h) + h, far + h)
+
 
 def _rays(cam: DepthCamera, rows: int, cols: int) -> np.ndarray:
   """Pixel-centre rays (rows, cols, 3) of the pinhole, possibly beyond the image (padding)."""
@@ -211,6 +222,35 @@ def _rays(cam: DepthCamera, rows: int, cols: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ primitives (plants)
+
+class Prims(NamedTuple):
+  """The primitives that `render_depth` considers, M of them: world AABB centres (M, 3)
+  and half extents (M, 3) m, geom axes `rot` (M, 3, 3) (columns, in world), quadric
+  semi-axes `semi` (M, 3) m, `kind` (M,) int32 (0 quadric, 1 cylinder), `present` (M,)
+  bool (False: a padding entry, never drawn). Fields may have leading axes (a pool)."""
+  centre: jax.Array
+  ext: jax.Array
+  rot: jax.Array
+  semi: jax.Array
+  kind: jax.Array
+  present: jax.Array
+
+  def take(self, ids: jax.Array, world=None) -> "Prims":
+    """Entries `ids` (M,) int32 (of world `world` of a pool); an id past the last is a
+    padding entry."""
+    n = self.kind.shape[-1]
+    at = jp.minimum(ids, n - 1)
+    out = Prims(*(a[at] if world is None else a[world, at] for a in self))
+    return out._replace(present=out.present & (ids < n))
+
+
+def camera_prims(cam: DepthCamera, m: mjx.Model, d: mjx.Data) -> Prims:
+  """All P primitives of the camera as posed in `m`, `d`: what `render_depth` considers
+  unless given a subset (static geoms: computed once, `Prims.take` of those in reach)."""
+  centre, ext, rot, semi = _prim_boxes(cam, m, d)
+  return Prims(centre, ext, rot, semi, jp.asarray(cam.prim_kind),
+               jp.ones(len(cam.prim_geom), bool))
+
 
 def _prim_boxes(cam: DepthCamera, m: mjx.Model, d: mjx.Data):
   """World AABBs of all primitives: centres (P, 3) and half extents (P, 3), metres.
@@ -270,21 +310,21 @@ def _tiles(cam: DepthCamera):
   return (ny, nx), ranges, rays
 
 
-def _render_prims(cam: DepthCamera, m: mjx.Model, d: mjx.Data, origin, rcam):
+def _render_prims(cam: DepthCamera, prims: Prims, origin, rcam):
   """Z-depth (H, W) of the first primitive hit (inf: none), primitives seen, tile overflow."""
   if cam.max_prims == 0:
     return jp.full((cam.height, cam.width), jp.inf), jp.int32(0), jp.int32(0)
-  centre, ext, rot, semi = _prim_boxes(cam, m, d)
-  box, near, seen = _project_boxes(cam, centre, ext, origin, rcam)
-  k = cam.max_prims
+  box, near, seen = _project_boxes(cam, prims.centre, prims.ext, origin, rcam)
+  seen = seen & prims.present
+  k = min(cam.max_prims, seen.shape[0])
   key = jp.where(seen, -near, -jp.inf)
   key, idx = jax.lax.top_k(key, k)  # the nearest k in view, nearest first
   valid = key > -jp.inf
 
   # Quadric of each kept primitive: x' Q x' = 1, x' = x - centre (for a cylinder Q is
   # its infinite side; its slab |u.x'| <= h and the cap facing the camera are apart).
-  cyl = jp.asarray(cam.prim_kind)[idx] == _KIND_CYLINDER
-  rk, sk = rot[idx], semi[idx]
+  cyl = prims.kind[idx] == _KIND_CYLINDER
+  rk, sk = prims.rot[idx], prims.semi[idx]
   uk = rk[:, :, 2]
   hk = jp.where(cyl, sk[:, 1], _BIG)
   rad = sk[:, 0]
@@ -295,7 +335,7 @@ def _render_prims(cam: DepthCamera, m: mjx.Model, d: mjx.Data, origin, rcam):
     return jp.where(cyl, (float(i == j) - uk[:, i] * uk[:, j]) / jp.square(rad), ell)
 
   q = [[qel(i, j) for j in range(3)] for i in range(3)]
-  d0 = origin - centre[idx]  # (K, 3)
+  d0 = origin - prims.centre[idx]  # (K, 3)
   qd = [sum(q[i][j] * d0[:, j] for j in range(3)) for i in range(3)]
   z0 = sum(uk[:, i] * d0[:, i] for i in range(3))
   # A cap can be the first hit only seen from outside the slab: the cap facing the camera.
@@ -354,8 +394,21 @@ def _render_prims(cam: DepthCamera, m: mjx.Model, d: mjx.Data, origin, rcam):
 
 # ------------------------------------------------------------------ terrain (heightfield)
 
+def terrain_reference(cam: DepthCamera, m: mjx.Model, d: mjx.Data) -> jax.Array:
+  """The mean height (m, world z) of the heightfield's vertices, the plane that the
+  terrain sampling starts from: a pass over the whole heightfield, so an env computes it
+  once per world and passes it to `render_depth` (0 without a heightfield). The same
+  expression as `_render_terrain`'s: the same number where XLA folds the same constants."""
+  if cam.terrain_geom < 0:
+    return jp.float32(0.0)
+  n = cam.hfield_nrow * cam.hfield_ncol
+  gz = d.geom_xpos[cam.terrain_geom, 2]
+  return (gz + m.hfield_data[cam.hfield_adr:cam.hfield_adr + n] * cam.hfield_size[2]).mean()
+
+
 def _triangle(cam: DepthCamera, hz, x, y):
-  """MuJoCo's hfield triangle under local points (x, y) (m from vertex (0, 0)).
+  """MuJoCo's hfield triangle under local points (x, y) (m from vertex (0, 0)); `hz`:
+  the vertex heights (nrow * ncol,) m, row-major.
 
   Returns (z0, gx, gy, x0, y0, tri_id, inside): the triangle's plane is
   z = z0 + gx (x - x0) + gy (y - y0) (world z); tri_id identifies the triangle.
@@ -377,8 +430,9 @@ def _triangle(cam: DepthCamera, hz, x, y):
   return h00, gx, gy, j * dx, i * dy, 2 * base + up, inside
 
 
-def _render_terrain(cam: DepthCamera, m: mjx.Model, d: mjx.Data, origin, rcam):
+def _render_terrain(cam: DepthCamera, m: mjx.Model, d: mjx.Data, origin, rcam, zref=None):
   """Z-depth (H, W) of the first heightfield hit (inf if none), and unconverged pixels.
+  `zref`: `terrain_reference` (default: computed here).
 
   Loops (scan, fori_loop) and the matmul below also mark where XLA must materialise
   arrays: left to itself, XLA:CPU fuses gathers into every consumer and repeats them.
@@ -388,6 +442,7 @@ def _render_terrain(cam: DepthCamera, m: mjx.Model, d: mjx.Data, origin, rcam):
   nrow, ncol, sz = cam.hfield_nrow, cam.hfield_ncol, cam.hfield_size[2]
   h, w, n = cam.height, cam.width, cam.terrain_samples
   gpos = d.geom_xpos[cam.terrain_geom]
+  # XLA computes these where the gathers below read them (unless the mean reads all)
   hz = gpos[2] + m.hfield_data[cam.hfield_adr:cam.hfield_adr + nrow * ncol] * sz
   ox = origin[0] - gpos[0] + cam.hfield_size[0]  # from vertex (0, 0), m
   oy = origin[1] - gpos[1] + cam.hfield_size[1]
@@ -399,7 +454,7 @@ def _render_terrain(cam: DepthCamera, m: mjx.Model, d: mjx.Data, origin, rcam):
   bx, by = rcam[0, 1], rcam[1, 1]
   bz = jp.maximum(rcam[2, 1], 1e-3)  # the camera must stay roughly upright
   du = cam.max_depth / n
-  zref = hz.mean()
+  zref = hz.mean() if zref is None else zref  # (as `terrain_reference`)
 
   # Ground point of every column plane at every sampled z-depth u (on the plane z = zref
   # first, then on the hfield), and its elevation angle g (tan) seen from the camera.
@@ -452,7 +507,9 @@ def _render_terrain(cam: DepthCamera, m: mjx.Model, d: mjx.Data, origin, rcam):
 
 # ------------------------------------------------------------------ public API
 
-def render_depth_info(cam: DepthCamera, m: mjx.Model, d: mjx.Data) -> tuple[jax.Array, dict]:
+def render_depth_info(cam: DepthCamera, m: mjx.Model, d: mjx.Data,
+                      prims: Prims | None = None,
+                      terrain_ref: jax.Array | None = None) -> tuple[jax.Array, dict]:
   """Like `render_depth`, plus diagnostics: `seen` (primitives in view before the top_k),
   `dropped` (those beyond `max_prims`), `tile_overflow` (the most primitives a tile had to
   leave out), `terrain_unconverged` (ground pixels whose exact refinement did not verify).
@@ -460,20 +517,29 @@ def render_depth_info(cam: DepthCamera, m: mjx.Model, d: mjx.Data) -> tuple[jax.
   """
   origin = d.cam_xpos[cam.cam_id]
   rcam = d.cam_xmat[cam.cam_id].reshape(3, 3)
-  prim, seen, overflow = _render_prims(cam, m, d, origin, rcam)
-  terr, unconverged = _render_terrain(cam, m, d, origin, rcam)
+  prims = camera_prims(cam, m, d) if prims is None else prims
+  prim, seen, overflow = _render_prims(cam, prims, origin, rcam)
+  terr, unconverged = _render_terrain(cam, m, d, origin, rcam, terrain_ref)
   depth = jp.clip(jp.minimum(prim, terr), 0.0, cam.max_depth).astype(jp.float32)
   info = dict(seen=seen, dropped=jp.maximum(seen - cam.max_prims, 0), tile_overflow=overflow,
               terrain_unconverged=unconverged)
   return depth, info
 
 
-def render_depth(cam: DepthCamera, m: mjx.Model, d: mjx.Data) -> jax.Array:
+def render_depth(cam: DepthCamera, m: mjx.Model, d: mjx.Data, prims: Prims | None = None,
+                 terrain_ref: jax.Array | None = None) -> jax.Array:
   """Noise-free z-depth image (H, W) float32, metres in [0, max_depth], of one world.
 
   vmap over worlds with `jax.vmap(partial(render_depth, cam), in_axes=(model_axes, 0))`.
+  `prims`: the primitives to consider instead of all of the camera's (`camera_prims`),
+  the same image where they include every one within `cam.reach` of the camera (in the
+  same order: `lax.top_k` breaks ties of distance by it), e.g. `Prims.take` of a
+  `nearby.NearbyIndex` query over primitives posed once; `m`, `d` then give the terrain
+  and the camera pose only. `terrain_ref`: `terrain_reference` of `m`, `d`, computed
+  once (default: here, a pass over the whole heightfield). With both, the cost follows
+  what is in reach of the camera, not the world's size.
   """
-  return render_depth_info(cam, m, d)[0]
+  return render_depth_info(cam, m, d, prims, terrain_ref)[0]
 
 
 def _noise_params(cfg_or_params: Any) -> tuple[float, float, float, float]:
@@ -538,5 +604,6 @@ def reference_depth(model: mujoco.MjModel, data: mujoco.MjData, cam: DepthCamera
   return np.minimum(z, cam.max_depth).reshape(cam.height, cam.width)
 
 
-__all__ = ["DepthCamera", "render_depth", "render_depth_info", "add_noise",
-           "quantize_depth", "dequantize_depth", "reference_depth"]
+__all__ = ["DepthCamera", "Prims", "camera_prims", "terrain_reference", "render_depth",
+           "render_depth_info", "add_noise", "quantize_depth", "dequantize_depth",
+           "reference_depth"]

@@ -25,7 +25,7 @@ auto-resetting envs the trainer uses, a new pose every `env.pose_reset_every` ep
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jp
@@ -37,13 +37,11 @@ from mujoco import mjx
 from mjxvine import depth as depth_cam
 from mjxvine.config import Config, action_box, depth_input_scale
 from mjxvine.deploy import MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN
-# The outcome codes are also read from here (starts, evaluate, tests): noqa for those
-# this module does not use itself.
+# Outcome codes and lane geometry are also read from here (starts, evaluate, tests).
 from mjxvine.episodes import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
                               REWARD_PREFIX, RUNNING, SUCCESS, TIMEOUT)
-# The lane geometry is read from here too (starts, tests): noqa for what this module
-# does not use itself.
 from mjxvine.lanes import LaneTable, lane_frame, point_ahead  # noqa: F401
+from mjxvine.nearby import NearbyIndex
 from mjxvine.wrappers import AutoResetBatch
 from mjxvine.worlds.layout import CENTERLINE_STEP_M
 from mjxvine.worlds import (Vineyard, batch_models, build_models, pool_worlds,
@@ -54,6 +52,7 @@ MAX_QVEL = 50.0  # beyond this (m/s or rad/s) the physics has exploded
 START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the lane's start
 YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
 COLLISION_MARGIN_M = 0.05  # a plant nearer than this to the robot's footprint is a collision
+PARKED_BELOW_M = -50.0  # a plant below this height is an unused slot (build.PARKED_Z, -100)
 
 
 def _yaw(quat: jax.Array) -> jax.Array:
@@ -63,6 +62,12 @@ def _yaw(quat: jax.Array) -> jax.Array:
 
 def _wrap(angle: jax.Array) -> jax.Array:
   return (angle + jp.pi) % (2 * jp.pi) - jp.pi
+
+
+class PoolWorld(NamedTuple):
+  """A pool world as the step reads it: its index and physics model (`physics_model`)."""
+  index: jax.Array
+  model: mjx.Model
 
 
 class VineyardEnv(Env):
@@ -90,12 +95,24 @@ class VineyardEnv(Env):
     self.substeps = int(round(cfg.env.control_dt / cfg.env.physics_dt))
     low, high = action_box(cfg)
     self.action_low, self.action_high = jp.array(low, jp.float32), jp.array(high, jp.float32)
-    data = mujoco.MjData(self.mj_model)
-    mujoco.mj_forward(self.mj_model, data)
+    # The physics steps the models without plants (no plant takes part in a contact: MJX
+    # would pose every plant geom at every substep); the camera and the collision check
+    # read the plants posed once, those near the robot (`nearby`). Same results.
+    physics = build_models(self.worlds, cfg, plants=False)
+    self._physics_model, self._physics_axes = batch_models(physics, like=self.model_axes)
+    data = mujoco.MjData(physics[0])
+    mujoco.mj_forward(physics[0], data)
     # on this process's device (see `worlds.batch.batch_models`)
-    self._data0 = mjx.put_data(self.mj_model, data, device=jax.local_devices()[0])
-    self._hfield = (int(self.mj_model.hfield_nrow[0]), int(self.mj_model.hfield_ncol[0]))
-    self._terrain_geom = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_GEOM, "terrain")
+    self._data0 = mjx.put_data(physics[0], data, device=jax.local_devices()[0])
+    self._hfield = (int(physics[0].hfield_nrow[0]), int(physics[0].hfield_ncol[0]))
+    self._terrain_geom = mujoco.mj_name2id(physics[0], mujoco.mjtObj.mjOBJ_GEOM, "terrain")
+    if self.camera.terrain_geom not in (-1, self._terrain_geom):
+      raise ValueError("the terrain must come before the plants in the model")
+    self._plants, self._near_plants = self._plant_prims(physics[0])
+    self._trunks, self._near_trunks = self._trunk_table()
+    # (Wd,) m, the static terrain's, computed as the step did (model constant, data argument)
+    ref = jax.jit(lambda w, d: depth_cam.terrain_reference(self.camera, self.physics_model(w), d))
+    self._terrain_ref = jp.stack([ref(w, self._data0) for w in range(len(self.worlds))])
 
   # ------------------------------------------------------------------ brax Env API
   @property
@@ -131,8 +148,43 @@ class VineyardEnv(Env):
     return action * jp.asarray(MIRROR_ACTION_SIGN, action.dtype)
 
   def world_model(self, world: jax.Array) -> mjx.Model:
-    """The mjx.Model of pool world `world` (a traced index is fine)."""
+    """The mjx.Model of pool world `world`, plants included (a traced index is fine)."""
     return take_world(self.model, self.model_axes, world)
+
+  def physics_model(self, world: jax.Array) -> mjx.Model:
+    """The mjx.Model that pool world `world` is simulated with: `world_model` without the
+    plants (`worlds.build_spec`); `pipeline_state` is its mjx.Data."""
+    return take_world(self._physics_model, self._physics_axes, world)
+
+  # ------------------------------------------------------------------ plants near the robot
+  def _plant_prims(self, physics: mujoco.MjModel) -> tuple[depth_cam.Prims, NearbyIndex]:
+    """The camera's primitives of every pool world posed once ((Wd, P) arrays: they
+    stand on the world body) and their index by AABB centre, for queries within
+    `camera.reach` of the camera."""
+    cam = self.camera
+    if np.any(self.mj_model.geom_bodyid[cam.prim_geom] != 0):
+      raise ValueError("the depth camera sees a moving geom: only static ones are posed once")
+    pose = lambda m: depth_cam.camera_prims(cam, m, mjx.kinematics(m, mjx.make_data(m)))
+    prims = jax.jit(jax.vmap(pose, in_axes=(self.model_axes,), axis_size=len(self.worlds)))(
+        self.model)
+    centre, ext = np.asarray(prims.centre), np.asarray(prims.ext)
+    reach = cam.reach(float(np.linalg.norm(ext, axis=-1).max(initial=0.0)))
+    # The camera stays above the terrain (`depth`), so over the heightfield geom's base:
+    # a primitive more than `reach` below it (a parked plant slot) is never in view.
+    floor = physics.geom_pos[self._terrain_geom, 2] if cam.terrain_geom >= 0 else -np.inf
+    return prims, NearbyIndex.build(centre[..., :2], centre[..., 2] > floor - reach, reach)
+
+  def _trunk_table(self) -> tuple[jax.Array, NearbyIndex]:
+    """Trunks of every pool world, (Wd, S, 4) [x, y, z, radius] m, and their index by
+    centre, for queries within collision reach of the robot (`plant_clearance`)."""
+    ids = self._trunk_ids
+    table = np.stack([np.concatenate([np.asarray(m.geom_pos)[ids],
+                                      np.asarray(m.geom_size)[ids, :1]], -1)
+                      for m in map(self.world_model, range(len(self.worlds)))])
+    corner = np.hypot(self.robot.length / 2, self.robot.width / 2)
+    reach = corner + float(table[..., 3].max(initial=0.0)) + COLLISION_MARGIN_M
+    keep = table[..., 2] > PARKED_BELOW_M
+    return jp.asarray(table), NearbyIndex.build(table[..., :2], keep, reach)
 
   def reset(self, rng: jax.Array, direction: float | None = None,
             along: tuple[float, float] | None = None) -> State:
@@ -202,7 +254,8 @@ class VineyardEnv(Env):
 
   def physics(self, m: mjx.Model, d: mjx.Data, action: jax.Array) -> mjx.Data:
     """One control step of the physics alone: the wheel speeds of `action` [v, w] (in the
-    box), then `substeps` (control_dt / physics_dt) `mjx.step`s of world model `m`."""
+    box), then `substeps` (control_dt / physics_dt) `mjx.step`s of `m`, a
+    `physics_model`."""
     d = d.replace(ctrl=jp.stack(wheel_speeds(action[0], action[1], self.robot)))
     return jax.lax.fori_loop(0, self.substeps, lambda _, x: mjx.step(m, x), d)
 
@@ -220,15 +273,16 @@ class VineyardEnv(Env):
          data[i + 1, j] * (1 - fu) * fv + data[i + 1, j + 1] * fu * fv)
     return pos[2] + h * size[2]
 
-  def _pose_data(self, pose: dict) -> tuple[mjx.Model, mjx.Data]:
-    m = self.world_model(pose["world"])
-    z = self.terrain_height(m, pose["xy"]) + self.robot.wheel_radius + 0.01
+  def _pose_data(self, pose: dict) -> tuple[PoolWorld, mjx.Data]:
+    """The pose's world and its physics data after `mjx.forward`, robot at rest."""
+    w = PoolWorld(pose["world"], self.physics_model(pose["world"]))
+    z = self.terrain_height(w.model, pose["xy"]) + self.robot.wheel_radius + 0.01
     qpos = self._data0.qpos.at[:3].set(jp.array([pose["xy"][0], pose["xy"][1], z]))
     qpos = qpos.at[3:7].set(jp.array([jp.cos(pose["yaw"] / 2), 0, 0, jp.sin(pose["yaw"] / 2)]))
     qpos = qpos.at[7:].set(0.0)
     d = self._data0.replace(qpos=qpos, qvel=jp.zeros_like(self._data0.qvel),
                             ctrl=jp.zeros_like(self._data0.ctrl))
-    return m, mjx.forward(m, d)
+    return w, mjx.forward(w.model, d)
 
   def _yaw_reference(self, pose: dict, key: jax.Array, jitter: bool) -> jax.Array:
     """World yaw (rad) that the state's yaw is measured from, for an episode from `pose`."""
@@ -242,13 +296,13 @@ class VineyardEnv(Env):
 
   def _start(self, pose: dict, k_obs, k_next, episodes, ref_jitter: bool = True,
              noise_factor=None) -> State:
-    m, d = self._pose_data(pose)
+    w, d = self._pose_data(pose)
     prev_action = jp.zeros(2, jp.float32)
     k_obs, k_ref = jax.random.split(k_obs)
     yaw_ref = self._yaw_reference(pose, k_ref, ref_jitter)
     noise = (self._noise_factor(jax.random.fold_in(k_ref, 1), ref_jitter)
              if noise_factor is None else jp.float32(noise_factor))
-    obs = self._observe(m, d, prev_action, k_obs, yaw_ref, noise)
+    obs = self._observe(w, d, prev_action, k_obs, yaw_ref, noise)
     info = dict(
         pose=pose, rng=k_next, episodes=episodes, episode_steps=jp.int32(0), yaw_ref=yaw_ref,
         noise_factor=noise,
@@ -272,32 +326,37 @@ class VineyardEnv(Env):
       return jp.exp(jax.random.uniform(key, (), minval=np.log(lo), maxval=np.log(hi)))
     return jax.random.uniform(key, (), minval=lo, maxval=hi)
 
-  def _observe(self, m, d, prev_action, key, yaw_ref, noise_factor) -> dict:
-    image = depth_cam.render_depth(self.camera, m, d)
+  def _observe(self, w: PoolWorld, d, prev_action, key, yaw_ref, noise_factor) -> dict:
+    ids = self._near_plants.near(w.index, d.cam_xpos[self.camera.cam_id, :2])
+    image = depth_cam.render_depth(self.camera, w.model, d, self._plants.take(ids, w.index),
+                                   self._terrain_ref[w.index])
     noisy = depth_cam.add_noise(image, key, self.camera, noise_factor)
     yaw = _wrap(_yaw(d.qpos[3:7]) - yaw_ref)
     return {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
 
-  def plant_clearance(self, m: mjx.Model, xy: jax.Array, yaw: jax.Array) -> jax.Array:
+  def plant_clearance(self, world: jax.Array, xy: jax.Array, yaw: jax.Array) -> jax.Array:
     """Smallest distance (m) from the robot footprint rectangle at (xy, yaw) to a plant trunk
-    surface of world model `m` (parked slots ignored)."""
-    centre = m.geom_pos[self._trunk_ids]
-    radius = m.geom_size[self._trunk_ids, 0]
+    surface of pool world `world` (parked slots ignored), exact up to
+    `COLLISION_MARGIN_M`: trunks farther away are left out (inf where none is near)."""
+    ids = self._near_trunks.near(world, xy)
+    trunk = self._trunks[world, jp.minimum(ids, self._near_trunks.count - 1)]
+    centre, radius = trunk[:, :3], trunk[:, 3]
     c, s = jp.cos(yaw), jp.sin(yaw)
     rel = centre[:, :2] - xy
     local = jp.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], -1)
     half = jp.array([self.robot.length / 2, self.robot.width / 2])
     outside = jp.maximum(jp.abs(local) - half, 0.0)
     dist = jp.linalg.norm(outside, axis=-1) - radius
-    return jp.min(jp.where(centre[:, 2] > -50, dist, jp.inf))
+    live = (ids < self._near_trunks.count) & (centre[:, 2] > PARKED_BELOW_M)
+    return jp.min(jp.where(live, dist, jp.inf))
 
   def step(self, state: State, action: jax.Array) -> State:
     """Physics, reward and termination of one 0.1 s control step of one env, no reset
     (the observation is rendered after the physics)."""
     env, info, pose = self.cfg.env, state.info, state.info["pose"]
     action = jp.clip(action, self.action_low, self.action_high)
-    m = self.world_model(pose["world"])
-    d = self.physics(m, state.pipeline_state, action)
+    w = PoolWorld(pose["world"], self.physics_model(pose["world"]))
+    d = self.physics(w.model, state.pipeline_state, action)
 
     finite = jp.all(jp.isfinite(d.qpos)) & jp.all(jp.isfinite(d.qvel))
     exploded = ~finite | (jp.max(jp.abs(d.qvel[:6])) > MAX_QVEL)
@@ -316,7 +375,7 @@ class VineyardEnv(Env):
     crossed = (xy - pose["eor"]) @ end_t > 0
 
     success = (dist < env.success_radius_m) | (crossed & (jp.abs(lateral) < half_lane))
-    collision = self.plant_clearance(m, xy, yaw) < COLLISION_MARGIN_M
+    collision = self.plant_clearance(pose["world"], xy, yaw) < COLLISION_MARGIN_M
     left_lane = jp.abs(lateral) > half_lane
     reversed_ = jp.abs(heading_err) > jp.deg2rad(env.yaw_limit_deg)
     steps = info["episode_steps"] + 1
@@ -342,7 +401,7 @@ class VineyardEnv(Env):
     truncation = (outcome == TIMEOUT) | (outcome == PHYSICS)
 
     k_obs, k_next = jax.random.split(info["rng"])
-    obs = self._observe(m, d, action, k_obs, info["yaw_ref"], info["noise_factor"])
+    obs = self._observe(w, d, action, k_obs, info["yaw_ref"], info["noise_factor"])
     ret = info["episode_return"] + reward
     new_info = dict(info, rng=k_next, episode_steps=steps, prev_action=action, dist=dist,
                     truncation=truncation.astype(jp.float32), outcome=outcome,

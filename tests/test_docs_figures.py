@@ -363,7 +363,8 @@ def seeds_range() -> Check:
 def test_every_recorded_choice_is_what_rank_chooses():
   """Each `*selection.json` under docs/results selected what `choice.rank` selects today, so
   that the recipe still chooses the policy its record names."""
-  records = sorted(RESULTS.glob("**/*selection.json"))
+  records = sorted([*RESULTS.glob("shipped-agent/*selection.json"),
+                    *RESULTS.glob("shipped-recipe-seeds/*selection.json")])
   assert len(records) == len(SEEDS)
   for path in records:
     sel = json.loads(path.read_text())

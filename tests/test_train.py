@@ -163,8 +163,8 @@ def test_non_finite_parameters_stop_the_run(tmp_path, monkeypatch):
   def poisoned(cfg, seeds=1, env=None):
     sac, init_fn, chunk_fn = real(cfg, seeds, env)
 
-    def chunk(ts):
-      ts, m = chunk_fn(ts)
+    def chunk(ts, *profile):  # (the CPU's host loop takes the run's profile)
+      ts, m = chunk_fn(ts, *profile)
       if int(ts.env_steps) >= 40:  # the second chunk goes bad
         ts = ts.replace(learner=ts.learner.replace(
             actor_params=jax.tree.map(lambda x: x * jp.nan, ts.learner.actor_params)))

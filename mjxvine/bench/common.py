@@ -1,7 +1,7 @@
 """What the benchmarks share: the machine they ran on (`environment`), the table and JSON
 of their rows (`write_results`), timing of compiled programs (seconds per call, compile
-seconds, XLA's flop and byte counts), the argparse types of their flags, and the env
-setup of `bench physics` and `bench env`."""
+seconds, XLA's flop and byte counts; several programs in turn), the argparse types of
+their flags, and the env setup of `bench physics` and `bench env`."""
 
 from __future__ import annotations
 
@@ -107,19 +107,46 @@ def time_compiled(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3)
               cpu_s=float(np.median(cpu)), reps=len(times))
 
 
+def compile_call(fn: Callable, *args) -> tuple[Callable, dict]:
+  """A jitted `fn` compiled for `args`, and {"compile_s", "flops", "bytes_accessed"}."""
+  t = time.perf_counter()
+  fn = fn.lower(*args).compile()
+  return fn, dict(compile_s=time.perf_counter() - t, **cost_analysis(fn))
+
+
 def time_call(fn: Callable, *args, min_time: float = 1.0, min_reps: int = 3) -> dict:
   """Compile time, steady-state seconds per call (`time_compiled`) and XLA's cost analysis
   (flops, bytes accessed per call) of a jitted `fn(*args)`."""
-  t = time.perf_counter()
-  fn = fn.lower(*args).compile()
-  compile_s = time.perf_counter() - t
-  return dict(compile_s=compile_s, **time_compiled(fn, *args, min_time=min_time,
-                                                   min_reps=min_reps), **cost_analysis(fn))
+  fn, info = compile_call(fn, *args)
+  return dict(compile_s=info["compile_s"], **time_compiled(fn, *args, min_time=min_time,
+                                                           min_reps=min_reps),
+              flops=info["flops"], bytes_accessed=info["bytes_accessed"])
 
 
-def per(cost: float | None, count: int) -> float | None:
-  """`cost / count`, None where XLA gave no count."""
-  return None if cost is None else cost / count
+def time_alternating(calls: list[tuple[Callable, tuple]], rounds: int = 10) -> list[dict]:
+  """Steady-state seconds per call of compiled programs `calls` [(fn, args)], called in
+  turn (A, B, A, B, ...: a load on the machine that comes and goes falls on all alike),
+  `rounds` times after one warm-up each. Per program: median, best and median CPU
+  seconds, and `ratio`, the median over rounds of its time over the first program's in
+  the same round (1 for the first)."""
+  for fn, args in calls:
+    jax.block_until_ready(fn(*args))
+  wall = np.zeros((rounds, len(calls)))
+  cpu = np.zeros_like(wall)
+  for r in range(rounds):
+    for i, (fn, args) in enumerate(calls):
+      t, c = time.perf_counter(), time.process_time()
+      jax.block_until_ready(fn(*args))
+      wall[r, i], cpu[r, i] = time.perf_counter() - t, time.process_time() - c
+  return [dict(call_s=float(np.median(wall[:, i])), best_s=float(wall[:, i].min()),
+               cpu_s=float(np.median(cpu[:, i])), reps=rounds,
+               ratio=float(np.median(wall[:, i] / wall[:, 0])))
+          for i in range(len(calls))]
+
+
+def per(cost: float | None, count: float | None) -> float | None:
+  """`cost / count`, None where XLA gave no count (either)."""
+  return None if cost is None or count is None else cost / count
 
 
 # ------------------------------------------------------------------ argparse types
@@ -181,10 +208,11 @@ def env_counts(args: argparse.Namespace) -> list[int]:
   return [1, 16, 64, 256] + ([1024, 4096, 16384] if jax.default_backend() != "cpu" else [])
 
 
-def env_setup(cfg, n: int):
-  """(training env of `cfg`, its reset state for `n` envs, one constant action per env)."""
+def env_setup(cfg, n: int, worlds=None):
+  """(training env of `cfg` (on `worlds`, default the config's pool), its reset state for
+  `n` envs, one constant action per env)."""
   from mjxvine.env import training_env  # pylint: disable=import-outside-toplevel
-  env = training_env(cfg)
+  env = training_env(cfg, worlds)
   state = jax.jit(lambda k: env.reset_batch(k, n))(jax.random.PRNGKey(0))
   action = jp.tile(jp.array([[0.3, 0.1]], jp.float32), (n, 1))
   return env, state, action

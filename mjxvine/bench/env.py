@@ -1,35 +1,112 @@
 """`bench env`: env-steps/s of the whole env step (physics, depth image and noise,
 reward, terminations, auto-reset) at the config's image size, per env count, with CPU ms
-and XLA's flops and bytes per env step."""
+and XLA's flops and bytes per env step.
+
+`--block ROWSxLENGTH` (e.g. 12x200) times instead the same env step on two worlds, the
+24 m test world and a generated block of ROWS plant rows of LENGTH m (the config's world
+settings otherwise, as a train world of world.train_seed), all envs in the one world,
+the two compiled programs called in turn, and reports the block's time over the test
+world's (`ratio`, the median over rounds): how the step's cost follows the world's size.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import jax
 
 from mjxvine import config as config_lib
-from mjxvine.bench.common import add_env_count_args, env_counts, env_setup, per, time_call
+from mjxvine.bench.common import (add_env_count_args, compile_call, env_counts, env_setup,
+                                  per, positive_int, time_alternating, time_call)
+from mjxvine.cli import int_range
+
+
+MAX_BLOCK_ROWS = 100  # a large vineyard block (world.train_rows stops at 12: train worlds)
+
+
+def block_size(text: str) -> tuple[int, float]:
+  """ROWSxLENGTH ("12x200"): plant rows, 2 to `MAX_BLOCK_ROWS`, and row length (m) in
+  world.train_length_m's range."""
+  parts = text.lower().split("x")
+  if len(parts) != 2:
+    raise argparse.ArgumentTypeError(f"{text!r}: expected ROWSxLENGTH, e.g. 12x200")
+  try:
+    rows = int_range(2, MAX_BLOCK_ROWS)(parts[0])
+  except argparse.ArgumentTypeError as e:
+    raise argparse.ArgumentTypeError(f"ROWS {e}") from None
+  try:
+    return rows, config_lib.check_value("world.train_length_m", parts[1])
+  except config_lib.ConfigError as e:
+    raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def add_env_args(p: argparse.ArgumentParser) -> None:
   add_env_count_args(p)  # --no-baseline too (physics' flag; no effect here)
+  p.add_argument("--block", type=block_size, default=None, metavar="ROWSxLENGTH",
+                 help="time the env step on a generated block of ROWS plant rows x LENGTH m "
+                      "(e.g. 12x200; rows 2-100, length 4-300 m) beside the 24 m test world, "
+                      "in turn, and report the ratio (default --sizes: env.num_envs)")
+  p.add_argument("--rounds", type=positive_int, default=10,
+                 help="with --block: timed calls of each world's program, in turn")
 
 
 def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   """Env-steps/s of the whole env step (physics, depth image and noise, reward,
   terminations, auto-reset) at the config's image size."""
+  if args.block:
+    return bench_block(args, cfg)
   rows = []
   for n in env_counts(args):
     env, state, action = env_setup(cfg, n)
-
-    def run(s, a):
-      return jax.lax.fori_loop(0, args.steps, lambda _, x: env.step_batch(x, a)[0], s)
-
-    t = time_call(jax.jit(run), state, action)
+    t = time_call(jax.jit(_steps(env, args.steps)), state, action)
     rows.append(dict(envs=n, image=f"{cfg.camera.height}x{cfg.camera.width}",
                      env_steps_per_s=n * args.steps / t["call_s"], compile_s=t["compile_s"],
                      cpu_ms_per_env_step=1e3 * t["cpu_s"] / (n * args.steps),
                      flops_per_env_step=per(t["flops"], n * args.steps),
                      bytes_per_env_step=per(t["bytes_accessed"], n * args.steps)))
   return rows
+
+
+def _steps(env, steps: int):
+  """`steps` env steps of the batch with one action: (state, action) -> state."""
+  def run(s, a):
+    return jax.lax.fori_loop(0, steps, lambda _, x: env.step_batch(x, a)[0], s)
+  return run
+
+
+def block_worlds(cfg: config_lib.Config, rows: int, length_m: float) -> list:
+  """[the 24 m test world, a block of `rows` plant rows of `length_m` m] of `cfg`."""
+  from mjxvine.worlds import generate_world, load_test_world  # (they read robot files)
+  w = cfg.world
+  block = dataclasses.replace(w, train_rows=rows, train_length_m=length_m,
+                              train_wide_gap_rows=min(w.train_wide_gap_rows, rows))
+  return [load_test_world(w), generate_world("train", w.train_seed, block)]
+
+
+def bench_block(args: argparse.Namespace, cfg: config_lib.Config) -> tuple[list[dict], dict]:
+  """The env step on the test world and on a block (`--block`), per env count: rows of
+  both, the block's with its time and XLA flops over the test world's."""
+  rows, ratios = [], {}
+  worlds = block_worlds(cfg, *args.block)
+  names = [f"test {len(worlds[0].lanes) + 1}x{worlds[0].length_m:g}",
+           f"block {args.block[0]}x{args.block[1]:g}"]
+  for n in env_counts(args) if args.sizes else [cfg.env.num_envs]:
+    calls, infos = [], []
+    for world in worlds:
+      env, state, action = env_setup(cfg, n, [world])
+      fn, info = compile_call(jax.jit(_steps(env, args.steps)), state, action)
+      calls.append((fn, (state, action)))
+      infos.append(info)
+    for name, world, info, t in zip(names, worlds, infos, time_alternating(calls, args.rounds)):
+      count = n * args.steps
+      rows.append(dict(envs=n, world=name, plants=len(world.plant_xy),
+                       image=f"{cfg.camera.height}x{cfg.camera.width}",
+                       env_steps_per_s=count / t["call_s"], compile_s=info["compile_s"],
+                       cpu_ms_per_env_step=1e3 * t["cpu_s"] / count,
+                       flops_per_env_step=per(info["flops"], count),
+                       bytes_per_env_step=per(info["bytes_accessed"], count),
+                       ratio=t["ratio"],
+                       flops_ratio=per(info["flops"], infos[0]["flops"] or None)))
+    ratios[str(n)] = rows[-1]["ratio"]
+  return rows, {"block": f"{args.block[0]}x{args.block[1]:g}", "block_ratio": ratios}

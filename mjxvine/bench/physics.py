@@ -28,7 +28,7 @@ def bench_physics(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict
     env, state, action = env_setup(cfg, n)
 
     def one(d, world, a):
-      return env.physics(env.world_model(world), d, a)
+      return env.physics(env.physics_model(world), d, a)
 
     def run(d, worlds, a):
       step = jax.vmap(one)

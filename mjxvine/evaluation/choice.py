@@ -145,17 +145,20 @@ def score_policy(cfg: Config, path: Path, worlds: list, runs: int,
   "success", "episodes" (over all of it), "mae_m" (the mean of the worlds' mean-of-rows
   MAE; None when no world has one), "wall_s"}. `below_bar_stops`: the rollout stops once
   so many of the worlds' runs failed that the policy cannot meet `SUCCESS_BAR`; its
-  scores then hold "stopped_early": True and count the runs not finished as failed."""
+  scores then hold "stopped_early": the worlds' runs that had failed, and count the runs
+  not finished as failed (its successes are a lower bound)."""
   cases, tables, noise = validation_cases(worlds, runs, cfg.eval.noise_factor, noise_factors)
   world_cases = np.concatenate([np.asarray(t, int) for t in tables])
   allowed = (1 - SUCCESS_BAR) * len(world_cases)  # failures the bar allows
-  cut = []  # set when the rollout stopped with runs unfinished
+  cut = []  # the failures when the rollout stopped with runs unfinished
 
   def below_bar(outcome: np.ndarray) -> bool:
     ended = outcome[world_cases]
-    if int(np.sum((ended != 0) & (ended != SUCCESS_CODE))) <= allowed:
+    failed = int(np.sum((ended != 0) & (ended != SUCCESS_CODE)))
+    if failed <= allowed:
       return False
-    cut.append(bool(np.any(outcome == 0)))
+    if np.any(outcome == 0):
+      cut.append(failed)
     return True
 
   raw, _ = rollout_cases(cfg, PolicySource(str(path)), worlds, cases,
@@ -178,8 +181,8 @@ def score_policy(cfg: Config, path: Path, worlds: list, runs: int,
   out["episodes"] = len(cases)
   out["mae_m"] = float(np.mean(maes)) if maes else None
   out["wall_s"] = raw["wall_s"]
-  if any(cut):
-    out["stopped_early"] = True
+  if cut:
+    out["stopped_early"] = cut[0]
   return out
 
 
@@ -264,5 +267,7 @@ def summary(scores: dict) -> str:
   noise = ", ".join(f"noise {k} {sum(v.values())}/{paper.NOISE_RUNS * len(paper.NOISE_LANES)}"
                     for k, v in scores["noise"].items())
   mae = "-" if scores["mae_m"] is None else f"{fmt(scores['mae_m'])} m"
-  cut = ", stopped early: it cannot meet the bar" if scores.get("stopped_early") else ""
-  return f"{scores['success']}/{scores['episodes']} ({worlds}; {noise}), MAE {mae}{cut}"
+  if scores.get("stopped_early"):
+    return (f"stopped once {scores['stopped_early']} runs of its worlds had failed: it "
+            "cannot meet the bar")
+  return f"{scores['success']}/{scores['episodes']} ({worlds}; {noise}), MAE {mae}"

@@ -253,14 +253,12 @@ def compiled(cfg: Config, seeds: int, env):
     "collection" or "gradient_steps" (the loop adds the host's bookkeeping around them)."""
 
     def call(phase: str, program, *args):
-      if profile is None:  # asynchronous, untimed
-        called.add(id(program))
-        return program(*args)
-      t0 = time.perf_counter()
-      out = jax.block_until_ready(program(*args))
-      dt = time.perf_counter() - t0
-      profile.add(phase if id(program) in called else "compile", dt)
+      t0, first = time.perf_counter(), id(program) not in called
       called.add(id(program))
+      if profile is None:  # asynchronous, untimed
+        return program(*args)
+      out = jax.block_until_ready(program(*args))
+      profile.add("compile" if first else phase, time.perf_counter() - t0)
       return out
 
     rows = []

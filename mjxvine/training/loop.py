@@ -199,7 +199,7 @@ def train(cfg: Config, run_dir: Path, *, resume: bool = False, evaluate_at_end: 
   try:
     with atomic.on_stop(functools.partial(_stop_cleanup, run_dir, lock)):
       return _train(cfg, run_dir, resume, evaluate_at_end, quiet or not primary, env,
-                    primary, restart, profile)
+                    restart, profile)
   finally:
     if lock is not None:
       lock.release()
@@ -234,6 +234,7 @@ class _Run:
   vineyard: bool
   env: Any
   stopped: str | None = None  # why the loop ended before the budget (train.max_minutes)
+  profile: Profile | None = None  # where the run's wall-clock goes
 
 
 def _set_up(cfg: Config, run_dir: Path, resume: bool, restart: bool, env,
@@ -353,12 +354,11 @@ def _check_finite(m: dict, ts, chunk_index: int, ckpt: Checkpoints) -> None:
         f"checkpoint is chunk {ckpt.manager.latest_step()} in {ckpt.dir}")
 
 
-def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Callable,
-          profile: Profile):
+def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Callable):
   """Trains chunks until the budget, `train.max_minutes` or a stop signal; each chunk goes
-  through `chunk_hooks` in order (each hook's time to its `phase` of `profile`). Returns
-  (TrainState, chunks done, signal number or 0)."""
-  ts, chunk_index = run.ts, run.chunk_index
+  through `chunk_hooks` in order (each hook's time to its `phase` of `run.profile`).
+  Returns (TrainState, chunks done, signal number or 0)."""
+  ts, chunk_index, profile = run.ts, run.chunk_index, run.profile
   t_compile, t_start, signum = None, time.time(), 0
   run.stopped = None
   while chunk_index < run.total_chunks:
@@ -407,7 +407,8 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
 
 
 def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quiet: bool,
-           env, primary: bool, restart: bool, profile: Profile) -> dict:
+           env, restart: bool, profile: Profile) -> dict:
+  primary = jax.process_index() == 0
   say = _say(quiet)
   cfg = nw.resolve_conv_impl(cfg)  # `auto` as the tower it takes here
   phase = ["setup"]  # a signal stops at once but while training (nothing to keep)
@@ -417,6 +418,7 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
     if isinstance(run, dict):  # complete already
       return run
     say(_describe(cfg, run_dir, run))
+    run.profile = profile
     seeds = len(run.members)
     # The evaluations from fresh starts: every eval_every_chunks chunks and at the end, or
     # only at the end when the closing report is asked for.
@@ -436,8 +438,7 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
     profile.add("setup", time.perf_counter() - profile.start - profile.total())
     try:
       ts, chunk_index, signum = _loop(
-          cfg, run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say,
-          profile)
+          cfg, run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say)
       with profile.phase("checkpoints"):
         checkpoints.at_end(ts, chunk_index)  # stopped early (a signal, train.max_minutes)
       atomic.set_stop_grace(atomic.STOP_GRACE_S)
@@ -460,7 +461,7 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
       if primary:
         record_fact(run_dir, stopped=run.stopped)
     row = _finish(cfg, run_dir, dataclasses.replace(run, ts=ts), evaluation, log.last_row,
-                  evaluate_at_end, primary, say, profile)
+                  evaluate_at_end, primary, say)
     row["profile"] = profile.record()
     if primary:
       record_fact(run_dir, profile=row["profile"])
@@ -469,10 +470,12 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
 
 
 def _finish(cfg: Config, run_dir: Path, run: _Run, evaluation, row: dict,
-            evaluate_at_end: bool, primary: bool, say: Callable, profile: Profile) -> dict:
+            evaluate_at_end: bool, primary: bool, say: Callable) -> dict:
   """After the loop (`run` with its last TrainState as `run.ts`): the learning curve, the
-  best scores in the last row, the choice on validation worlds and the closing report."""
+  best scores in the last row, the choice on validation worlds and the closing report
+  (each timed in `run.profile`)."""
   from mjxvine.evaluation import choice
+  profile = run.profile
   if primary:
     with profile.phase("logs"):
       plot_learning_curve(run_dir)

@@ -17,11 +17,15 @@ import numpy as np
 from mujoco import mjx
 
 
-def batch_models(models: Sequence[mujoco.MjModel]) -> tuple[mjx.Model, mjx.Model]:
+def batch_models(models: Sequence[mujoco.MjModel],
+                 like: mjx.Model | None = None) -> tuple[mjx.Model, mjx.Model]:
   """Returns (batched mjx.Model, in_axes) for MjModels of identical structure.
 
   A leaf that differs between the models is stacked along a new axis 0 (in_axes 0);
-  a leaf equal in all of them is kept once (in_axes None).
+  a leaf equal in all of them is kept once (in_axes None). `like`: the in_axes of
+  another batch of the same worlds (the env's models with plants); a leaf stacked there
+  is stacked here too, so that XLA computes with it as it does there (a leaf kept once is
+  a constant, which XLA may fold, rounding differently in the last bit).
   """
   if not models:
     raise ValueError("batch_models needs at least one model")
@@ -34,13 +38,17 @@ def batch_models(models: Sequence[mujoco.MjModel]) -> tuple[mjx.Model, mjx.Model
   for i, (_, td) in enumerate(flat[1:], 1):
     if td != treedef:
       raise ValueError(f"model {i} has another structure than model 0 (plant slots, robot?)")
+  stack = ([a == 0 for a in jax.tree.leaves(like, is_leaf=lambda x: x is None)]
+           if like is not None else [False] * len(flat[0][0]))
+  if len(stack) != len(flat[0][0]):
+    raise ValueError("like: the in_axes of another model structure")
   leaves, axes = [], []
-  for group in zip(*(f[0] for f in flat)):
+  for group, stacked in zip(zip(*(f[0] for f in flat)), stack):
     shapes = {np.shape(x) for x in group}
     if len(shapes) != 1:
       raise ValueError(f"models differ in an array's shape {shapes}: not batchable")
     first = np.asarray(group[0])
-    if all(np.array_equal(first, np.asarray(x)) for x in group[1:]):
+    if not stacked and all(np.array_equal(first, np.asarray(x)) for x in group[1:]):
       leaves.append(group[0])
       axes.append(None)
     else:

@@ -84,12 +84,14 @@ def terrain_span(world: Vineyard, cfg: Config) -> float:
 
 
 def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
-               terrain_span_m: float | None = None) -> mujoco.MjSpec:
+               terrain_span_m: float | None = None, plants: bool = True) -> mujoco.MjSpec:
   """The MjSpec of `world` with the robot of `cfg.robot` at the start of lane 1, forward.
 
   `plant_slots` (default: `plant_slots_for([world])`) fixes the number of plant geom
   pairs, and `terrain_span_m` (default `terrain_span(world, cfg)`) the heightfield's
-  height range, so that worlds built with the same values batch together.
+  height range, so that worlds built with the same values batch together. `plants=False`
+  leaves the plant geoms out (the env's physics model: they take part in no contact, and
+  MJX would pose every one of them at every physics step).
   """
   spec = mujoco.MjSpec()
   # the same for all worlds (names are static); a robot file's name, not its path
@@ -131,7 +133,7 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
   if n > slots:
     raise ValueError(f"plant_slots = {slots}: the world has {n} plants")
   ground = terrain_height(world, world.plant_xy[:, 0], world.plant_xy[:, 1])
-  for i in range(slots):
+  for i in range(slots if plants else 0):
     if i < n:
       x, y = world.plant_xy[i]
       h, z0 = world.trunk_height[i], ground[i]
@@ -162,17 +164,19 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
 
 
 def build_model(world: Vineyard, cfg: Config, plant_slots: int | None = None,
-                terrain_span_m: float | None = None) -> mujoco.MjModel:
-  """Compiles the MuJoCo model of `world` with the robot and camera of `cfg`."""
-  return build_spec(world, cfg, plant_slots, terrain_span_m).compile()
+                terrain_span_m: float | None = None, plants: bool = True) -> mujoco.MjModel:
+  """Compiles the MuJoCo model of `world` with the robot and camera of `cfg` (`plants`:
+  see `build_spec`)."""
+  return build_spec(world, cfg, plant_slots, terrain_span_m, plants).compile()
 
 
-def build_models(worlds: Sequence[Vineyard], cfg: Config) -> list[mujoco.MjModel]:
+def build_models(worlds: Sequence[Vineyard], cfg: Config,
+                 plants: bool = True) -> list[mujoco.MjModel]:
   """Models of `worlds` with a common number of plant slots and terrain height range,
-  ready for `batch_models`."""
+  ready for `batch_models` (`plants`: see `build_spec`)."""
   slots = plant_slots_for(worlds)
   span = max(terrain_span(w, cfg) for w in worlds)
-  return [build_model(w, cfg, slots, span) for w in worlds]
+  return [build_model(w, cfg, slots, span, plants) for w in worlds]
 
 
 def plant_geom_ids(model: mujoco.MjModel, slots: int) -> tuple[np.ndarray, np.ndarray]:
