@@ -361,8 +361,8 @@ def seeds_range() -> Check:
 
 
 def test_every_recorded_choice_is_what_rank_chooses():
-  """Each `*selection.json` under docs/results selected what `choice.rank` selects today, so
-  that the recipe still chooses the policy its record names."""
+  """Each recipe seed's `*selection.json` selected what `choice.rank` selects today among
+  its candidates (the lever records of unlearning/ are curves, not the recipe's choice)."""
   records = sorted([*RESULTS.glob("shipped-agent/*selection.json"),
                     *RESULTS.glob("shipped-recipe-seeds/*selection.json")])
   assert len(records) == len(SEEDS)
