@@ -44,6 +44,7 @@ from mjxvine.lanes import LaneTable, lane_frame, point_ahead  # noqa: F401
 from mjxvine.nearby import NearbyIndex
 from mjxvine.wrappers import AutoResetBatch
 from mjxvine.worlds.layout import CENTERLINE_STEP_M
+from mjxvine.worlds.build import PARKED_Z
 from mjxvine.worlds import (Vineyard, batch_models, build_models, pool_worlds,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
@@ -52,7 +53,7 @@ MAX_QVEL = 50.0  # beyond this (m/s or rad/s) the physics has exploded
 START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the lane's start
 YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
 COLLISION_MARGIN_M = 0.05  # a plant nearer than this to the robot's footprint is a collision
-PARKED_BELOW_M = -50.0  # a plant below this height is an unused slot (build.PARKED_Z, -100)
+PARKED_BELOW_M = PARKED_Z / 2  # a plant below this height is an unused slot
 
 
 def _yaw(quat: jax.Array) -> jax.Array:

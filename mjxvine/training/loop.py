@@ -359,6 +359,7 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
   through `chunk_hooks` in order (each hook's time to its `phase` of `run.profile`).
   Returns (TrainState, chunks done, signal number or 0)."""
   ts, chunk_index, profile = run.ts, run.chunk_index, run.profile
+  one_program = scan_chunks()  # a chunk is one program (scan), else the CPU's host loop
   t_compile, t_start, signum = None, time.time(), 0
   run.stopped = None
   while chunk_index < run.total_chunks:
@@ -378,15 +379,15 @@ def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Ca
     atomic.set_stop_grace(atomic.STOP_GRACE_S if first else atomic.CHUNK_STOP_GRACE_S)
     t0, timed = time.perf_counter(), profile.total()
     try:
-      ts, m = run.chunk_fn(ts) if scan_chunks() else run.chunk_fn(ts, profile)
+      ts, m = run.chunk_fn(ts) if one_program else run.chunk_fn(ts, profile)
       m = jax.device_get(m)
     finally:
       if first:
         stops.stop_now = stop_now
     dt = time.perf_counter() - t0
-    # one program (scan): the chunk is one phase; the host path timed its calls and the
-    # rest of the chunk is its bookkeeping
-    profile.add(("compile" if first else "training_chunks") if scan_chunks() else
+    # one program: the chunk is one phase; the host loop timed its calls, and the rest of
+    # the chunk is its bookkeeping
+    profile.add(("compile" if first else "training_chunks") if one_program else
                 "collection", dt - (profile.total() - timed))
     if t_compile is None:
       t_compile = dt
