@@ -61,6 +61,31 @@ class WorldConfig:
   trunk_height_m: tuple[float, float] = _f((0.6, 0.8), 0.1, 2.0)
   canopy_width_m: tuple[float, float] = _f((0.3, 0.5), 0.05, 2.0)
   canopy_top_m: tuple[float, float] = _f((1.6, 1.9), 0.5, 4.0)
+  # Vineyard realism (docs/environment.md, Seasons and the trellis): none in classic worlds.
+  season: str = _f("classic", choices=("classic", "spring", "summer", "winter", "mixed"),
+                   doc="what the plants look like: classic (the paper's trunk and canopy "
+                   "ellipsoid, nothing else), spring (small lobes on the cordon), summer (a "
+                   "wall of canopy lobes, shoots into the lanes), winter (bare trunks and "
+                   "cordons), the last three with trellis posts; mixed: each world draws "
+                   "spring, summer or winter from its seed")
+  post_spacing_m: tuple[float, float] = _f((6.4, 8.5), 0.0, 50.0, doc="line posts of "
+                                           "the trellis every this along a row (drawn per "
+                                           "world), anchor posts at both row ends; [0, 0]: "
+                                           "no posts, else at least 1 m (not classic)")
+  post_height_m: tuple[float, float] = _f((1.8, 2.2), 0.3, 4.0, doc="post height above "
+                                          "the ground, drawn per post (not classic)")
+  cordon_height_m: tuple[float, float] = _f((0.9, 1.0), 0.2, 3.0, doc="height of the "
+                                            "cordon (fruiting wire) and the trunks' top, "
+                                            "drawn per row (not classic; below canopy_top_m)")
+  canopy_lobes: tuple[int, int] = _f((3, 5), 1, 12, doc="ellipsoid lobes of a plant's "
+                                     "canopy, drawn per plant (spring, summer)")
+  shoots_per_plant: tuple[int, int] = _f((1, 2), 0, 8, doc="shoots of a summer plant "
+                                         "hanging into the lanes, drawn per plant")
+  shoot_reach_m: tuple[float, float] = _f((0.1, 0.35), 0.0, 1.5, doc="how far a summer "
+                                          "shoot reaches beyond the canopy's side, drawn "
+                                          "per shoot")
+  tuft_density_per_m2: float = _f(0.0, 0.0, 10.0, doc="grass and weed tufts per m^2 of "
+                                  "lane floor, seen by the camera, driven over (not classic)")
   terrain_amplitude_m: float = _f(0.05, 0.0, 0.5, doc="terrain bumps are +- this")
   slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient along the rows (+x), %")
   cross_slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient across the rows, %")
@@ -68,6 +93,17 @@ class WorldConfig:
   pool_size: int = _f(8, 1, 4096, doc="train worlds in the pool")
   train_files: str = _f("", doc="vineyard files (.geojson, .csv, comma-separated) whose "
                         "blocks join the pool of generated train worlds")
+
+  MIN_POST_SPACING_M = 1.0  # line posts nearer than this are no trellis (not a key)
+
+  def __post_init__(self):
+    lo, hi = self.post_spacing_m
+    if hi > 0 and lo < self.MIN_POST_SPACING_M:
+      raise ConfigError(f"world.post_spacing_m = {list(self.post_spacing_m)}: [0, 0] (no "
+                        f"posts) or a range from at least {self.MIN_POST_SPACING_M:g} m")
+    if self.season != "classic" and self.cordon_height_m[1] >= self.canopy_top_m[0]:
+      raise ConfigError(f"world.cordon_height_m = {list(self.cordon_height_m)}: must stay "
+                        f"below world.canopy_top_m {list(self.canopy_top_m)}")
 
 
 def robot_spec(name_or_path: str) -> RobotSpec:
@@ -98,6 +134,22 @@ class RobotConfig:
   wheel_kv: float = _f(1.0, 0.001, 100.0, doc="wheel velocity-servo gain per kg of robot, N m s / rad / kg")
   wheel_armature: float = _f(0.005, 0.0, 1.0, doc="wheel motor armature per kg of robot, kg m^2 / kg")
   wheel_friction: float = _f(0.8, 0.05, 5.0)
+  # The robot's faults (`mjxvine.robot_faults`, docs/your-robot.md): drawn per episode.
+  latency_steps: tuple[int, int] = _f((0, 0), 0, 5, doc="control steps between a command "
+                                      "and the wheels acting on it, drawn per episode")
+  velocity_lag_s: tuple[float, float] = _f((0.0, 0.0), 0.0, 2.0, doc="time constant of "
+                                           "the first-order lag of the commanded speed and "
+                                           "turn rate, drawn per episode (0: none)")
+  mount_pitch_deg: tuple[float, float] = _f((0.0, 0.0), 0.0, 20.0, doc="camera pitch "
+                                             "error: its size uniform in [lo, hi], its sign "
+                                             "at random, per episode ([0, x]: uniform in "
+                                             "+-x; [x, x]: +-x exactly)")
+  mount_roll_deg: tuple[float, float] = _f((0.0, 0.0), 0.0, 20.0, doc="camera roll error, "
+                                            "as mount_pitch_deg")
+  mount_height_m: tuple[float, float] = _f((0.0, 0.0), 0.0, 0.3, doc="camera height error, "
+                                            "as mount_pitch_deg")
+  yaw_walk_deg: float = _f(0.0, 0.0, 10.0, doc="IMU yaw drift: the state's yaw walks "
+                           "randomly by this std per square root of a second")
 
   @property
   def spec(self) -> RobotSpec:
@@ -117,6 +169,52 @@ class CameraConfig:
   noise_factor: float = _f(1.0, 0.0, 100.0, doc="k in clip(d + k (n1 + n2), 0, max)")
   noise_sigma_m: float = _f(0.2, 0.0, 5.0, doc="std of the depth-independent term n1")
   noise_clip_m: float = _f(0.5, 0.0, 5.0, doc="each noise term is clipped to +- this")
+
+
+# The depth sensor's presets (docs/design.md, The depth sensor): every `sensor.*` key a
+# config file or --set does not name takes its preset's value. `ideal` is the paper's camera.
+SENSOR_PRESETS = {
+    "ideal": dict(stereo_baseline_m=0.0, stereo_focal_px=447.0, stereo_subpixel_px=0.08,
+                  min_depth_m=0.0, dropout_rate=(0.0, 0.0), patch_rate=(0.0, 0.0),
+                  patch_size_deg=5.0, flying_pixel_rate=0.0, quantum_m=0.0),
+    # RealSense D435 at 848 px: B 50 mm, HFOV 87 deg -> f 447 px, subpixel 0.08 px; min-Z
+    # f B / 126 px = 0.18 m (0.11 m is at 424x240); outdoor holes (no published vineyard
+    # fill rate: ranges, not measurements)
+    "d435": dict(stereo_baseline_m=0.050, stereo_focal_px=447.0, stereo_subpixel_px=0.08,
+                 min_depth_m=0.18, dropout_rate=(0.01, 0.10), patch_rate=(0.02, 0.10),
+                 patch_size_deg=6.0, flying_pixel_rate=0.3, quantum_m=0.001),
+    # RealSense D455 at 848 px: B 95 mm, HFOV 87 deg -> f 447 px; min-Z f B / 126 px =
+    # 0.34 m (0.52 m at 1280x720)
+    "d455": dict(stereo_baseline_m=0.095, stereo_focal_px=447.0, stereo_subpixel_px=0.08,
+                 min_depth_m=0.34, dropout_rate=(0.01, 0.08), patch_rate=(0.02, 0.08),
+                 patch_size_deg=6.0, flying_pixel_rate=0.3, quantum_m=0.001),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorConfig:
+  """The depth sensor's faults on top of the camera's image and noise (docs/design.md, The
+  depth sensor; `mjxvine.sensor`). "No return" reads camera.max_depth_m, as a deployed
+  policy's preprocessing makes it (`NumpyPolicy(invalid_depth=None)`)."""
+  preset: str = _f("ideal", choices=tuple(SENSOR_PRESETS), doc="the camera whose values "
+                   "the other sensor keys take unless they are set: ideal (the paper's "
+                   "exact image and noise), d435, d455 (RealSense stereo cameras)")
+  stereo_baseline_m: float = _f(0.0, 0.0, 1.0, doc="stereo baseline B; the depth error's "
+                                "std is z^2 s / (f B) (0: no stereo error)")
+  stereo_focal_px: float = _f(447.0, 1.0, 1e5, doc="focal length f, pixels of the "
+                              "sensor's native width")
+  stereo_subpixel_px: float = _f(0.08, 0.0, 2.0, doc="subpixel accuracy s of the matcher")
+  min_depth_m: float = _f(0.0, 0.0, 10.0, doc="nearer than this: no return")
+  dropout_rate: tuple[float, float] = _f((0.0, 0.0), 0.0, 1.0, doc="share of single "
+                                         "pixels without a return at 0 m and at "
+                                         "camera.max_depth_m (linear in between)")
+  patch_rate: tuple[float, float] = _f((0.0, 0.0), 0.0, 1.0, doc="share of pixels in "
+                                       "patches without a return (spatially correlated), "
+                                       "at 0 m and at camera.max_depth_m")
+  patch_size_deg: float = _f(5.0, 0.1, 90.0, doc="the patches' size, degrees of view")
+  flying_pixel_rate: float = _f(0.0, 0.0, 1.0, doc="share of the pixels on a depth edge "
+                                "that read a depth between its two sides")
+  quantum_m: float = _f(0.0, 0.0, 0.1, doc="depth step of the output (0.001: millimetres)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -281,6 +379,7 @@ class Config:
   world: WorldConfig = WorldConfig()
   robot: RobotConfig = RobotConfig()
   camera: CameraConfig = CameraConfig()
+  sensor: SensorConfig = SensorConfig()
   env: EnvConfig = EnvConfig()
   sac: SACConfig = SACConfig()
   train: TrainConfig = TrainConfig()
@@ -567,13 +666,30 @@ def _lay_robot_file(data: dict, sets: list[tuple[str, str]]) -> None:
       _set_nested(data, key, value)
 
 
+def _lay_sensor_preset(data: dict, named: set[str]) -> None:
+  """Fills the `sensor` keys with `data`'s preset's values: those missing, and, where the
+  config file or --set names the preset (`named`: the sensor keys they name), every one
+  they do not name (over a recorded run's values)."""
+  sensor = data.get("sensor")
+  if sensor is None:
+    sensor = data["sensor"] = {}
+  if not isinstance(sensor, dict):
+    return  # _build names the fault
+  preset = sensor.get("preset", SensorConfig.preset)
+  if preset not in SENSOR_PRESETS:
+    _coerce("sensor.preset", preset, str, {"choices": tuple(SENSOR_PRESETS)})  # raises
+  for key, value in SENSOR_PRESETS[preset].items():
+    if key not in sensor or ("preset" in named and key not in named):
+      sensor[key] = list(value) if isinstance(value, tuple) else value
+
+
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = (),
                 base: dict | None = None) -> Config:
   """Loads a config: defaults <- `base` (a mapping, e.g. a run's own config.yaml) <- YAML
   file at `path` <- the robot file's camera and velocity values (RobotConfig) <-
   `overrides` ("section.key=value")."""
-  data: dict = _merged(_recorded(copy.deepcopy(base or {})),
-                       read_yaml(path) if path is not None else {})
+  own = read_yaml(path) if path is not None else {}
+  data: dict = _merged(_recorded(copy.deepcopy(base or {})), own)
   sets = []
   for item in overrides:
     if "=" not in item:
@@ -583,6 +699,10 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (),
   _lay_robot_file(data, sets)
   for key, value in sets:
     _set_nested(data, key, value)
+  named = {k.split(".", 1)[1] for k, _ in sets if k.startswith("sensor.")}
+  if isinstance(own.get("sensor"), dict):
+    named |= set(own["sensor"])
+  _lay_sensor_preset(data, named)
   cfg = _build(Config, data, "")
   _check_cross_fields(cfg)
   return cfg

@@ -592,6 +592,13 @@ def reference_depth(model: mujoco.MjModel, data: mujoco.MjData, cam: DepthCamera
   """The same image (H, W) float64 by MuJoCo's C ray caster, on the host: `mj_multiRay`
   with geomgroup (1, 1, 0, 0, 0, 0), flg_static 1, no body excluded (the robot is group
   2), distances converted to z-depth. `data` must be after `mj_forward`."""
+  return reference_hits(model, data, cam)[0]
+
+
+def reference_hits(model: mujoco.MjModel, data: mujoco.MjData, cam: DepthCamera
+                   ) -> tuple[np.ndarray, np.ndarray]:
+  """`reference_depth`'s image and the geom id each pixel's ray hit first, (H, W) int32
+  (-1: none)."""
   rot = data.cam_xmat[cam.cam_id].reshape(3, 3)
   rays = cam.pixel_rays().reshape(-1, 3).astype(np.float64) @ rot.T
   norm = np.linalg.norm(rays, axis=1)
@@ -601,7 +608,8 @@ def reference_depth(model: mujoco.MjModel, data: mujoco.MjData, cam: DepthCamera
                      (rays / norm[:, None]).ravel(), np.array([1, 1, 0, 0, 0, 0], np.uint8),
                      1, -1, geomid, dist, None, n, 1e9)
   z = np.where(dist >= 0, dist / norm, np.inf)  # |ray| = 1 / cos: z-depth = dist / |ray|
-  return np.minimum(z, cam.max_depth).reshape(cam.height, cam.width)
+  return (np.minimum(z, cam.max_depth).reshape(cam.height, cam.width),
+          geomid.reshape(cam.height, cam.width))
 
 
 __all__ = ["DepthCamera", "Prims", "camera_prims", "terrain_reference", "render_depth",

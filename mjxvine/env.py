@@ -11,6 +11,10 @@ the heading at the episode start plus a random training offset ("start", as a ro
 its IMU heading at the row entrance), or the world yaw ("world", the paper's input).
 Action: [v, w] in physical units, v in [v_min, v_max] m/s (v_min 0 in the paper), w in
 [-w_max, w_max] rad/s. Pose, lane and End of Row (EoR) live in `info` only.
+The robot's faults (`robot_faults`: command latency, velocity lag, camera mount errors, IMU
+yaw drift), where the `robot.*` keys turn them on, are drawn at every episode start (random
+and `reset_to` starts alike) and kept in `info["robot"]`: the wheels get the lagged command
+of `latency` steps ago, the state's v_prev, w_prev stay the policy's command.
 
 `step` advances one env by one control step and does not reset it (brax's convention):
 `done` marks the end of an episode, `info["truncation"]` is 1 where it ended by time-out or
@@ -25,7 +29,7 @@ auto-resetting envs the trainer uses, a new pose every `env.pose_reset_every` ep
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Sequence
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jp
@@ -34,9 +38,11 @@ import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
 
-from mjxvine import depth as depth_cam
+from mjxvine import depth as depth_cam, robot_faults, sensor
+from mjxvine.angles import quat_yaw as _yaw, wrap as _wrap
 from mjxvine.config import Config, action_box, depth_input_scale
 from mjxvine.deploy import MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN
+from mjxvine.driver import pure_pursuit  # noqa: F401 (the reference driver, read from here)
 # Outcome codes and lane geometry are also read from here (starts, evaluate, tests).
 from mjxvine.episodes import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
                               REWARD_PREFIX, RUNNING, SUCCESS, TIMEOUT)
@@ -45,7 +51,7 @@ from mjxvine.nearby import NearbyIndex
 from mjxvine.wrappers import AutoResetBatch
 from mjxvine.worlds.layout import CENTERLINE_STEP_M
 from mjxvine.worlds.build import PARKED_Z
-from mjxvine.worlds import (Vineyard, batch_models, build_models, pool_worlds,
+from mjxvine.worlds import (Vineyard, batch_models, build_models, camera_limits, pool_worlds,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
 REWARD_TERMS = ("heading", "progress", "success", "collision", "reverse")
@@ -54,15 +60,6 @@ START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the l
 YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
 COLLISION_MARGIN_M = 0.05  # a plant nearer than this to the robot's footprint is a collision
 PARKED_BELOW_M = PARKED_Z / 2  # a plant below this height is an unused slot
-
-
-def _yaw(quat: jax.Array) -> jax.Array:
-  w, x, y, z = quat[0], quat[1], quat[2], quat[3]
-  return jp.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
-def _wrap(angle: jax.Array) -> jax.Array:
-  return (angle + jp.pi) % (2 * jp.pi) - jp.pi
 
 
 class PoolWorld(NamedTuple):
@@ -87,7 +84,9 @@ class VineyardEnv(Env):
     models = build_models(self.worlds, cfg)
     self.mj_model = models[0]
     self.model, self.model_axes = batch_models(models)
-    self.camera = depth_cam.DepthCamera.create(self.mj_model, cfg.camera)
+    # more primitives per view than classic plants' in the other seasons
+    self.camera = depth_cam.DepthCamera.create(self.mj_model, cfg.camera,
+                                               **camera_limits(self.worlds, cfg.camera))
     self.lanes = LaneTable(self.worlds, cfg.env.max_steps)
     # metres of x between centerline samples (at most CENTERLINE_STEP_M in file worlds)
     self.sample_m = (self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
@@ -203,7 +202,8 @@ class VineyardEnv(Env):
     `along` (m from the lane's start in the travel direction), lateral offset (m) and yaw
     offset (rad). Used by the evaluation protocol: the yaw reference is the start heading,
     without the training jitter. `noise_factor` (may be traced): the episode's depth noise
-    factor instead of the env's."""
+    factor instead of the env's. The robot's faults are drawn from the config's ranges (a
+    range [2, 2] fixes one)."""
     k_obs, k_next = jax.random.split(rng)
     pose = self._pose(jp.int32(world), jp.int32(lane), jp.float32(direction),
                       jp.float32(along), jp.float32(lateral), jp.float32(yaw))
@@ -303,10 +303,11 @@ class VineyardEnv(Env):
     yaw_ref = self._yaw_reference(pose, k_ref, ref_jitter)
     noise = (self._noise_factor(jax.random.fold_in(k_ref, 1), ref_jitter)
              if noise_factor is None else jp.float32(noise_factor))
-    obs = self._observe(w, d, prev_action, k_obs, yaw_ref, noise)
+    faults = robot_faults.draw(self.cfg.robot, k_ref)
+    obs = self._observe(w, d, prev_action, k_obs, yaw_ref, noise, faults)
     info = dict(
         pose=pose, rng=k_next, episodes=episodes, episode_steps=jp.int32(0), yaw_ref=yaw_ref,
-        noise_factor=noise,
+        noise_factor=noise, **robot_faults.info_entry(faults),
         prev_action=prev_action, dist=jp.linalg.norm(d.qpos[:2] - pose["eor"]),
         truncation=jp.float32(0), outcome=jp.int32(RUNNING), episode_return=jp.float32(0),
         last_return=jp.float32(0), last_outcome=jp.int32(RUNNING), last_length=jp.int32(0))
@@ -327,12 +328,14 @@ class VineyardEnv(Env):
       return jp.exp(jax.random.uniform(key, (), minval=np.log(lo), maxval=np.log(hi)))
     return jax.random.uniform(key, (), minval=lo, maxval=hi)
 
-  def _observe(self, w: PoolWorld, d, prev_action, key, yaw_ref, noise_factor) -> dict:
-    ids = self._near_plants.near(w.index, d.cam_xpos[self.camera.cam_id, :2])
-    image = depth_cam.render_depth(self.camera, w.model, d, self._plants.take(ids, w.index),
+  def _observe(self, w: PoolWorld, d, prev_action, key, yaw_ref, noise_factor,
+               faults: robot_faults.RobotFaults | None = None) -> dict:
+    cam = robot_faults.mounted_camera(self.cfg.robot, d, self.camera.cam_id, faults)
+    ids = self._near_plants.near(w.index, cam.cam_xpos[self.camera.cam_id, :2])
+    image = depth_cam.render_depth(self.camera, w.model, cam, self._plants.take(ids, w.index),
                                    self._terrain_ref[w.index])
-    noisy = depth_cam.add_noise(image, key, self.camera, noise_factor)
-    yaw = _wrap(_yaw(d.qpos[3:7]) - yaw_ref)
+    noisy = sensor.observe(image, key, self.cfg.camera, self.cfg.sensor, noise_factor)
+    yaw = _wrap(robot_faults.imu_yaw(self.cfg.robot, _yaw(d.qpos[3:7]) - yaw_ref, faults))
     return {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
 
   def plant_clearance(self, world: jax.Array, xy: jax.Array, yaw: jax.Array) -> jax.Array:
@@ -357,7 +360,9 @@ class VineyardEnv(Env):
     env, info, pose = self.cfg.env, state.info, state.info["pose"]
     action = jp.clip(action, self.action_low, self.action_high)
     w = PoolWorld(pose["world"], self.physics_model(pose["world"]))
-    d = self.physics(w.model, state.pipeline_state, action)
+    # the wheels get the command of latency steps ago, lagged; prev_action stays `action`
+    wheels, faults = robot_faults.step(self.cfg, info.get("robot"), action, info["rng"])
+    d = self.physics(w.model, state.pipeline_state, wheels)
 
     finite = jp.all(jp.isfinite(d.qpos)) & jp.all(jp.isfinite(d.qvel))
     exploded = ~finite | (jp.max(jp.abs(d.qvel[:6])) > MAX_QVEL)
@@ -402,9 +407,10 @@ class VineyardEnv(Env):
     truncation = (outcome == TIMEOUT) | (outcome == PHYSICS)
 
     k_obs, k_next = jax.random.split(info["rng"])
-    obs = self._observe(w, d, action, k_obs, info["yaw_ref"], info["noise_factor"])
+    obs = self._observe(w, d, action, k_obs, info["yaw_ref"], info["noise_factor"], faults)
     ret = info["episode_return"] + reward
     new_info = dict(info, rng=k_next, episode_steps=steps, prev_action=action, dist=dist,
+                    **robot_faults.info_entry(faults),
                     truncation=truncation.astype(jp.float32), outcome=outcome,
                     episode_return=ret,
                     last_return=jp.where(done, ret, info["last_return"]),
@@ -468,32 +474,3 @@ class VectorObsEnv(Env):
   @property
   def backend(self) -> str:
     return self.inner.backend
-
-
-# ---------------------------------------------------------------------- reference driver
-def pure_pursuit(env: VineyardEnv, lookahead_m: float = 1.0, speed: float | None = None
-                 ) -> Callable[[State, jax.Array], jax.Array]:
-  """A privileged pure-pursuit driver on the lane centerline, using the true pose.
-
-  Returns `policy(state, key) -> action (2,)` of one env (vmap for a batch), the signature
-  of learned policies in `mjxvine.evaluate`. It is the yardstick's yardstick: it must
-  drive every test lane.
-  """
-  v_cmd = env.cfg.env.v_max if speed is None else speed
-  ahead = int(np.ceil(lookahead_m / env.sample_m))
-
-  def policy(state: State, key: jax.Array) -> jax.Array:
-    del key
-    pose = state.info["pose"]
-    d = state.pipeline_state
-    xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
-    line, k, _, _ = env.lanes.lane(pose["world"], pose["lane"])
-    i, _, _, _ = lane_frame(line, xy, pose["direction"], k)
-    rel = point_ahead(line, i, pose["direction"], ahead, k) - xy
-    alpha = _wrap(jp.arctan2(rel[1], rel[0]) - yaw)
-    dist = jp.maximum(jp.linalg.norm(rel), 0.3)
-    w = 2.0 * v_cmd * jp.sin(alpha) / dist
-    v = v_cmd * jp.clip(jp.cos(alpha), 0.2, 1.0)
-    return jp.clip(jp.array([v, w]), env.action_low, env.action_high)
-
-  return policy

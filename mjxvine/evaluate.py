@@ -28,6 +28,7 @@ OUT/videos/ (`mjxvine.evaluation.video`). The library is `mjxvine.evaluation`.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -35,10 +36,11 @@ from pathlib import Path
 from mjxvine.atomic import check_output
 from mjxvine.cli import (CommandParser, add_policy_args, input_error, key_type, member_error,
                          seed_type)
-from mjxvine.config import ConfigError, add_config_args, enable_compile_cache
+from mjxvine.config import (SENSOR_PRESETS, ConfigError, WorldConfig, add_config_args,
+                            enable_compile_cache)
 # One error class for every policy problem (`deploy.PolicyFormatError` is a subclass).
 from mjxvine.deploy import PolicyError
-from mjxvine.evaluation import paper, video
+from mjxvine.evaluation import paper, realism, video
 from mjxvine.evaluation.policies import check_policy_file
 from mjxvine.evaluation.report import results_markdown, write_results
 from mjxvine.evaluation.rollout import (PolicySource, Protocol, all_lanes, parse_lanes,
@@ -47,6 +49,10 @@ from mjxvine.evaluation.video import RenderError, VideoFormat, write_videos
 from mjxvine.rundir.checkpoints import WHICH
 from mjxvine.rundir.settings import policy_config
 from mjxvine.worlds import TEST_WORLD_SEED, world_of
+
+
+SEASONS = next(f.metadata["choices"] for f in dataclasses.fields(WorldConfig)
+               if f.name == "season")
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -78,10 +84,22 @@ def parser() -> argparse.ArgumentParser:
                  help="noise, robots: the paper's robustness tables; rows: generated test "
                       "worlds with 80 m rows 1.8-3.0 m apart on slopes of 0-10 %% "
                       "(mjxvine.evaluation.rows; --runs, default 1)")
-  p.add_argument("--suite", choices=("paper",), default=None,
+  p.add_argument("--suite", choices=("paper", "realism"), default=None,
                  help="paper: the paper's whole evaluation (test worlds 0-3 with --runs, "
                       "default 5; the noise and robot tests) in one report "
-                      "(mjxvine.evaluation.suite)")
+                      "(mjxvine.evaluation.suite); realism: test worlds 0-3 (and the "
+                      "--world vineyard file's block, 2 runs per lane-direction) under each "
+                      "factor of the field alone, each season and all together "
+                      "(mjxvine.evaluation.realism, docs/sim-to-real.md)")
+  p.add_argument("--condition", choices=tuple(realism.CONDITIONS), default=None,
+                 help="drive under one of the realism suite's conditions (its config "
+                      "values; --set still overrides)")
+  p.add_argument("--sensor", choices=tuple(SENSOR_PRESETS), default=None,
+                 help="the depth sensor: ideal, d435, d455 (sensor.preset, with the "
+                      "preset's values)")
+  p.add_argument("--season", choices=SEASONS, default=None,
+                 help="the vineyard's season (world.season): classic, spring, summer, winter, "
+                      "mixed")
   p.add_argument("--seed", type=seed_type, default=0, metavar="N",
                  help="seed of the runs' random draws: their depth noise (the runs of a "
                       "lane differ by it) and the random policy's actions; the starts are "
@@ -119,6 +137,8 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
     p.error("--video/--gif film the protocol's runs, not a --sweep or --suite")
   if args.sweep and args.suite:
     p.error("--sweep and --suite: choose one (the paper suite includes both sweeps)")
+  if args.suite == "realism" and (args.condition or args.sensor or args.season):
+    p.error("--suite realism sets its own conditions: drop --condition, --sensor, --season")
   if args.video_lanes and not filming:
     p.error("--video-lanes: give --video or --gif too")
 
@@ -134,6 +154,30 @@ def run_suite(cfg, args, out: Path) -> None:
   paper_suite(cfg, args.policy, out, runs=args.runs or paper.RUNS, seed=args.seed,
               which=args.which, member=args.member)
   print((out / "report.md").read_text())
+
+
+def run_realism(cfg, args, out: Path) -> None:
+  block = args.world if args.world and not args.world.isdigit() else None
+  say(f"evaluating {args.policy}: the realism suite, {len(realism.CONDITIONS)} conditions "
+      "(a compilation each)...")
+  realism.realism_suite(cfg, PolicySource(args.policy, args.which, args.member), out,
+                        realism.SuiteRuns(args.runs or paper.RUNS, block=block,
+                                          seed=args.seed), say=say)
+  print((out / "report.md").read_text())
+
+
+def condition_overrides(args) -> list[str]:
+  """The --set values that --condition, --sensor and --season stand for (before --set)."""
+  sets = []
+  if args.condition:
+    for section, values in realism.CONDITIONS[args.condition].items():
+      sets += [f"{section}.{k}={list(v) if isinstance(v, tuple) else v}"
+               for k, v in values.items()]
+  if args.sensor:
+    sets.append(f"sensor.preset={args.sensor}")  # the preset fills the other sensor keys
+  if args.season:
+    sets.append(f"world.season={args.season}")
+  return sets
 
 
 def run_sweep(cfg, args, world, out: Path) -> None:
@@ -191,6 +235,7 @@ def _inputs(args) -> list[tuple]:
 def run(args) -> int:
   """What the checked flags ask for; 2 with one line on stderr when it cannot be done."""
   extra = [f"robot.name={args.robot}"] if args.robot else []
+  extra += condition_overrides(args)
   try:
     if args.policy not in ("oracle", "random"):  # fail before the worlds are built
       check_policy_file(args.policy, args.which)
@@ -210,6 +255,8 @@ def run(args) -> int:
                        inputs=_inputs(args), writes=WRITES)
     if args.suite == "paper":
       run_suite(cfg, args, out)
+    elif args.suite == "realism":
+      run_realism(cfg, args, out)
     elif args.sweep:
       run_sweep(cfg, args, world, out)
     else:

@@ -8,7 +8,9 @@ A robot file groups its numbers, units in the key names (metres, kg, degrees, pi
   camera: {ahead_m: 0.21, height_m: 0.26, pitch_deg: 0.0}
 
 with the optional camera.pitch_deg (default 0), camera.fovx_deg / fovy_deg / width_px /
-height_px and velocity.v_max_mps / w_max_radps. The built-in robots (`ROBOTS`) are the
+height_px, velocity.v_max_mps / w_max_radps and the robot's faults, faults.latency_steps /
+velocity_lag_s / mount_pitch_deg / mount_roll_deg / mount_height_m (ranges [lo, hi]) /
+yaw_walk_deg (`mjxvine.robot_faults`). The built-in robots (`ROBOTS`) are the
 files in mjxvine/worlds/data/robots/. A bad file raises `RobotFileError`, one line naming
 the file and its fault (`mjxvine.config.robot_spec` turns it into a `ConfigError`).
 
@@ -175,6 +177,13 @@ class RobotSpec:
   camera_height_px: int | None = None
   v_max: float | None = None  # m/s
   w_max: float | None = None  # rad/s
+  # the robot's faults (`mjxvine.robot_faults`), the `robot.*` config keys of the same names
+  latency_steps: tuple[int, int] | None = None  # control steps, [lo, hi]
+  velocity_lag_s: tuple[float, float] | None = None  # s, [lo, hi]
+  mount_pitch_deg: tuple[float, float] | None = None  # the error's size, [lo, hi]
+  mount_roll_deg: tuple[float, float] | None = None  # the error's size, [lo, hi]
+  mount_height_m: tuple[float, float] | None = None  # the error's size, [lo, hi]
+  yaw_walk_deg: float | None = None  # per sqrt(s)
 
   @property
   def mass(self) -> float:
@@ -200,13 +209,24 @@ SCHEMA = {
                "height_px": ("camera_height_px", 1, 1024, False)},
     "velocity": {"v_max_mps": ("v_max", 0.01, 5.0, False),
                  "w_max_radps": ("w_max", 0.01, 10.0, False)},
+    # the bounds of the `robot.*` keys (mjxvine.config.RobotConfig)
+    "faults": {"latency_steps": ("latency_steps", 0, 5, False),
+               "velocity_lag_s": ("velocity_lag_s", 0.0, 2.0, False),
+               "mount_pitch_deg": ("mount_pitch_deg", 0.0, 20.0, False),
+               "mount_roll_deg": ("mount_roll_deg", 0.0, 20.0, False),
+               "mount_height_m": ("mount_height_m", 0.0, 0.3, False),
+               "yaw_walk_deg": ("yaw_walk_deg", 0.0, 10.0, False)},
 }
+RANGES = {"latency_steps", "velocity_lag_s", "mount_pitch_deg", "mount_roll_deg",
+          "mount_height_m"}  # RobotSpec fields given as [lo, hi]
 # RobotSpec field -> the config key it sets when the file gives it (RobotConfig's rule)
 CONFIG_KEYS = {"camera_fovx_deg": "camera.fovx_deg", "camera_fovy_deg": "camera.fovy_deg",
                "camera_width_px": "camera.width", "camera_height_px": "camera.height",
-               "v_max": "env.v_max", "w_max": "env.w_max"}
+               "v_max": "env.v_max", "w_max": "env.w_max",
+               **{spec[0]: f"robot.{spec[0]}" for spec in SCHEMA["faults"].values()}}
 UNITS = {"_m": " m", "_kg": " kg", "_deg": " deg", "_px": " px", "_mps": " m/s",
-         "_radps": " rad/s"}
+         "_radps": " rad/s", "_s": " s", "_steps": " steps"}
+WHOLE = {"_px": "pixels", "_steps": "control steps"}  # integer keys: what they count
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
@@ -230,8 +250,9 @@ def _number(shown: str, key: str, value, lo, hi):
     raise RobotFileError(f"{shown}: {key} = {short_repr(value)}: expected a finite number")
   if isinstance(lo, int):
     if not float(value).is_integer():
+      counts = next((w for s, w in WHOLE.items() if key.endswith(s)), "units")
       raise RobotFileError(f"{shown}: {key} = {short_repr(value)}: expected a whole number "
-                           "of pixels")
+                           f"of {counts}")
     value = int(value)
   else:
     value = float(value)
@@ -239,6 +260,19 @@ def _number(shown: str, key: str, value, lo, hi):
     unit = next((u for s, u in UNITS.items() if key.endswith(s)), "")
     raise RobotFileError(f"{shown}: {key} = {value:g}: must be in [{lo:g}, {hi:g}]{unit}")
   return value
+
+
+def _range(shown: str, key: str, value, lo, hi) -> tuple:
+  """`value` as an increasing pair [min, max] of `_number`s in [lo, hi], or the one-line
+  error."""
+  if not isinstance(value, (list, tuple)) or len(value) != 2:
+    raise RobotFileError(f"{shown}: {key} = {short_repr(value)}: expected a range [min, max] "
+                         "of 2 numbers")
+  pair = tuple(_number(shown, key, v, lo, hi) for v in value)
+  if pair[0] > pair[1]:
+    raise RobotFileError(f"{shown}: {key} = [{pair[0]:g}, {pair[1]:g}]: the range must be "
+                         "increasing [min, max]")
+  return pair
 
 
 def _check_fit(shown: str, s: RobotSpec) -> None:
@@ -292,7 +326,8 @@ def parse_robot(doc, shown: str) -> RobotSpec:
         raise _unknown(shown, f"{group}.{key}", keys)
     for key, (field, lo, hi, required) in keys.items():
       if key in values:
-        fields[field] = _number(shown, f"{group}.{key}", values[key], lo, hi)
+        read = _range if field in RANGES else _number
+        fields[field] = read(shown, f"{group}.{key}", values[key], lo, hi)
       elif required:
         raise RobotFileError(f"{shown}: missing key {group}.{key}")
   spec = RobotSpec(**fields)
@@ -354,9 +389,9 @@ def robot_spec(name_or_path: str | Path) -> RobotSpec:
   return _READ[key]
 
 
-def config_values(robot: RobotSpec) -> dict[str, float | int]:
-  """{"camera.width": 64, "env.v_max": 1.0, ...}: the config keys the robot file sets
-  (its optional camera and velocity values)."""
+def config_values(robot: RobotSpec) -> dict[str, float | int | tuple]:
+  """{"camera.width": 64, "env.v_max": 1.0, "robot.latency_steps": (0, 2), ...}: the config
+  keys the robot file sets (its optional camera, velocity and fault values)."""
   return {key: getattr(robot, field) for field, key in CONFIG_KEYS.items()
           if getattr(robot, field) is not None}
 

@@ -26,7 +26,7 @@ from mjxvine.atomic import OutputError, atomic_path, check_output, command_main,
 from mjxvine.cli import ROBOT_HELP, CommandParser
 from mjxvine.config import add_config_args, config_from_args, short_repr
 from mjxvine.deploy import PolicyFormatError, read_policy_file
-from mjxvine.worlds.build import build_spec, terrain_height
+from mjxvine.worlds.build import build_spec, camera_limits, terrain_height
 from mjxvine.worlds.layout import save_world
 from mjxvine.worlds.plot import save_map
 from mjxvine.worlds.store import world_of
@@ -54,7 +54,7 @@ def write_depth(model, world, cfg, pose, out: Path) -> None:
   from mjxvine import depth as depth_cam
 
   data = place_robot(model, world, *pose)
-  cam = depth_cam.DepthCamera.create(model, cfg.camera)
+  cam = depth_cam.DepthCamera.create(model, cfg.camera, **camera_limits([world], cfg.camera))
   mx, dx = mjx.put_model(model), mjx.put_data(model, data)
   image = np.asarray(jax.jit(lambda m, d: depth_cam.render_depth(cam, m, d))(mx, dx))
   noisy = np.asarray(depth_cam.add_noise(image, jax.random.PRNGKey(0), cfg.camera, 1.0))
@@ -196,6 +196,10 @@ def main(argv=None) -> int:
   print(f"{name} ({cfg.robot.name}): {len(world.plant_xy)} plants, "
         f"{len(world.lanes)} lanes, inter-row {world.inter_row_m:.2f} m, spacing "
         f"{world.spacing_m:.2f} m -> {out}/world.xml, world.json, world.png")
+  if world.season != "classic":
+    print(f"  {world.season}: {len(world.post_xy)} posts, {len(world.cordons)} cordons, "
+          f"{len(world.lobes)} canopy lobes, {len(world.shoots)} shoots, "
+          f"{len(world.tufts)} tufts")
   if world.frame:
     for lane in world.lanes:
       line = lane.centerline

@@ -24,8 +24,9 @@ import numpy as np
 from mjxvine.config import WorldConfig
 from mjxvine.worlds.layout import (CENTERLINE_STEP_M, TERRAIN_CELL_M, TERRAIN_MARGIN_M, Lane,
                                    Vineyard, WorldFileError, slope_plane, terrain_bumps)
-from mjxvine.worlds.limits import (MAX_PLANTS, MAX_ROW_PLANTS, MAX_ROWS, MAX_TERRAIN_CELLS,
-                                   MIN_PLANT_SPACING_M)
+from mjxvine.worlds.limits import (MAX_PLANTS, MAX_ROW_PLANTS, MAX_ROWS, MAX_SCENERY,
+                                   MAX_TERRAIN_CELLS, MIN_PLANT_SPACING_M)
+from mjxvine.worlds.seasons import SHAPE_TABLES, dress
 
 SMOOTH_M = 3.0  # moving-average window of a file lane's midline: plant jitter out, bends in
 MIN_OVERLAP_M = 2.0  # adjacent rows must run side by side at least this far
@@ -122,6 +123,13 @@ def plant_sizes(rng: np.random.Generator, cfg: WorldConfig, row_sizes: Sequence[
   return trunk, top, width
 
 
+class BlockLook(NamedTuple):
+  """What a vineyard file says of its block's look: its `season` and the spacing of its
+  trellis line posts (`post_spacing_m`, a range in m); None: the config's."""
+  season: str | None = None
+  post_spacing_m: tuple[float, float] | None = None
+
+
 class BlockFrame(NamedTuple):
   """Where a block's rows come from and how it lies, as `Vineyard.frame` keeps it: `source`
   (the file, in messages; "" for none), `origin_lonlat` (the local frame's tangent point,
@@ -138,7 +146,8 @@ class BlockFrame(NamedTuple):
 def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_width_m: float,
                        labels: Sequence[str] | None = None,
                        row_sizes: Sequence[dict] | None = None, seed: int = 0,
-                       frame: BlockFrame = BlockFrame()) -> Vineyard:
+                       frame: BlockFrame = BlockFrame(), look: BlockLook = BlockLook()
+                       ) -> Vineyard:
   """The `Vineyard` of plant rows given as (n_j, 2) arrays of plant positions (m) in a
   local metric frame, at least two rows of at least two plants, lying as `frame` says
   (`BlockFrame`: source, origin, heading, slopes).
@@ -146,7 +155,9 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
   row_sizes: optional per-row plant sizes (m), a dict per row with any of
   "trunk_height_m", "canopy_width_m", "canopy_top_m"; what a row does not give is drawn
   per plant from the config's ranges with `seed`. The frame (origin, heading, offset,
-  slopes) is kept in `Vineyard.frame`."""
+  slopes) is kept in `Vineyard.frame`. `look` (`BlockLook`): the block's own season and
+  post spacing, before the config's (`seasons.dress`; a row's trunk height is its cordon's
+  there); a given spacing is kept in the frame too."""
   source, origin_lonlat, heading_rad, slope_pct, cross_slope_pct = frame
   labels = list(labels or [f"row {j + 1}" for j in range(len(rows))])
   rows = [np.asarray(r, np.float64).reshape(-1, 2) for r in rows]
@@ -182,7 +193,7 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
   terrain = terrain_bumps(rng, cfg, extent)
   if slope_pct or cross_slope_pct:
     terrain = terrain + slope_plane(terrain.shape, extent, slope_pct, cross_slope_pct)
-  return Vineyard(
+  world = Vineyard(
       kind="file", seed=int(seed), inter_row_m=float(np.median(widths)), spacing_m=spacing,
       length_m=float(max(l.centerline[-1, 0] for l in lanes)),
       row_y0=np.array([r[:, 1].mean() for r in rows]), plant_xy=plant_xy,
@@ -192,7 +203,17 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
       frame={"source": source, "origin_lonlat": None if origin_lonlat is None else
              [float(v) for v in origin_lonlat], "heading_deg": float(np.rad2deg(heading)),
              "offset_m": offset.tolist(), "rows": labels,
-             "slope_pct": float(slope_pct), "cross_slope_pct": float(cross_slope_pct)})
+             "slope_pct": float(slope_pct), "cross_slope_pct": float(cross_slope_pct),
+             **({} if look.post_spacing_m is None else
+                {"post_spacing_m": [float(v) for v in look.post_spacing_m]})})
+  given = np.array([s.get("trunk_height_m") is not None for s in row_sizes], bool)
+  world = dress(world, cfg, season=look.season, post_spacing_m=look.post_spacing_m,
+                given_trunks=given[plant_row])
+  shapes = len(world.post_xy) + sum(len(getattr(world, k)) for k in SHAPE_TABLES)
+  if shapes > MAX_SCENERY:
+    raise WorldFileError(f"{block}: {world.season} puts {shapes} posts and shapes on it; a "
+                         f"block has at most {MAX_SCENERY} (a smaller block, fewer tufts)")
+  return world
 
 
 def _check_rows(block: str, rows: list[np.ndarray], labels: list[str]) -> None:

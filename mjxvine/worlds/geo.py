@@ -14,14 +14,18 @@ counted from 1 in file order), `trunk_height_m`, `canopy_width_m`, `canopy_top_m
 row's plants; absent: drawn per plant from the config's ranges); others are ignored.
 The collection may carry a foreign member "mjxvine", every key optional:
   {"origin_lonlat": [lon, lat], "heading_deg": h, "offset_m": [dx, dy],
-   "plant_spacing_m": s, "slope_pct": p, "cross_slope_pct": q}
+   "plant_spacing_m": s, "slope_pct": p, "cross_slope_pct": q,
+   "season": "summer", "post_spacing_m": 7.2}
 origin: the tangent point of the local frame (default: the centre of the rows' bounding
 box); heading_deg: the rows' direction in that frame, degrees counter-clockwise from east
 (default: estimated, `blocks.block_heading`); offset_m: the block frame's shift (default:
 the first lane starts at x = 0, the rows centred on y = 0; within `MAX_OFFSET_M` of that);
 slopes: the terrain's gradient (%) along and across the rows (arguments first, then these,
-else 0). `write_geojson` writes all three of origin, heading, offset, so a world reads back
-where it was.
+else 0). season: the block's look (`mjxvine.worlds.seasons`: classic, spring, summer,
+winter, or mixed, drawn from the seed; default: the config's world.season);
+post_spacing_m: its trellis line posts' spacing (m, or a [min, max] range; 0: no posts;
+default: the config's). `write_geojson` writes all three of origin, heading, offset, so a
+world reads back where it was, and the season and a given post spacing.
 
 Local frame: the tangent plane at the origin (`mjxvine.worlds.geodesy`).
 
@@ -29,8 +33,9 @@ CSV: plant positions in a local metric frame, header `row,x_m,y_m` (any order, m
 columns allowed), one plant per line: `row` a label (rows in the order first seen, plants
 of a row in file order), x_m, y_m in metres. Optional columns trunk_height_m,
 canopy_width_m, canopy_top_m: per plant, a row takes the mean of its plants' values (an
-empty cell: not given). No origin; the heading is estimated. `write_csv` writes a world's
-block frame, so reading the file back gives the same block.
+empty cell: not given); season and post_spacing_m: the block's, as in the "mjxvine" member
+(every line that fills the cell must say the same). No origin; the heading is estimated.
+`write_csv` writes a world's block frame, so reading the file back gives the same block.
 
 Faults raise `WorldFileError`: one line naming the file, the feature (or CSV line) and
 what is wrong, names and values quoted with control characters escaped. Sizes are bounded
@@ -49,7 +54,7 @@ import numpy as np
 
 from mjxvine.config import WorldConfig
 from mjxvine.robot_files import clean, escaped, short_repr
-from mjxvine.worlds.blocks import MAX_BLOCK_M, BlockFrame, vineyard_from_rows
+from mjxvine.worlds.blocks import MAX_BLOCK_M, BlockFrame, BlockLook, vineyard_from_rows
 from mjxvine.worlds.geo_csv import read_csv_rows
 from mjxvine.worlds.geodesy import (WGS84_A, WGS84_E2, ecef, local_to_lonlat,  # noqa: F401
                                     lonlat_to_local, tangent_plane_error_m)
@@ -59,12 +64,13 @@ from mjxvine.worlds.layout import Vineyard, WorldFileError
 from mjxvine.worlds.limits import (MAX_FILE_BYTES, MAX_JSON_DEPTH, MAX_LINE_VERTICES,
                                    MAX_PLANTS, MAX_ROW_PLANTS, MAX_ROWS, MIN_PLANT_SPACING_M,
                                    json_too_deep, read_bounded)
+from mjxvine.worlds.seasons import moved
 
 PROJECTED_M = 100e3  # a "block" wider than this is coordinates in metres read as degrees
 MAX_NAME_CHARS = 60  # of a row's name in a message
 MAX_OFFSET_M = 10.0  # a file's offset_m may move the block this far from the default
 MJXVINE_KEYS = ("origin_lonlat", "heading_deg", "offset_m", "plant_spacing_m", "slope_pct",
-                "cross_slope_pct")
+                "cross_slope_pct", "season", "post_spacing_m")
 
 
 def read_vineyard(path, cfg: WorldConfig, *, robot_width_m: float,
@@ -119,6 +125,33 @@ def _check_slope(value, name: str, error=WorldFileError, where: str = "") -> flo
     raise error(f"{where}{name} {_quote(value)}: give a number of percent in [{lo:g}, "
                 f"{hi:g}]")
   return float(value)
+
+
+def _meta_field(name: str) -> dict:
+  """The metadata (range, choices) of the config key world.`name`."""
+  return dict({f.name: f.metadata for f in dataclasses.fields(WorldConfig)}[name])
+
+
+def check_season(value, where: str) -> str:
+  """A file's season (`where`: its place, for the message), else one-line WorldFileError."""
+  choices = _meta_field("season")["choices"]
+  if not isinstance(value, str) or value not in choices:
+    raise WorldFileError(f"{where}season {_quote(value)}: one of {', '.join(choices)}")
+  return value
+
+
+def check_post_spacing(value, where: str) -> tuple[float, float]:
+  """A file's post spacing: a number of metres or a [min, max] range (0: no posts), as
+  world.post_spacing_m takes it, else one-line WorldFileError."""
+  meta = _meta_field("post_spacing_m")
+  pair = value if isinstance(value, list) and len(value) == 2 else [value, value]
+  least = WorldConfig.MIN_POST_SPACING_M
+  if not (all(_is_number(v) and math.isfinite(v) and v <= meta["hi"] for v in pair)
+          and pair[0] <= pair[1] and (pair[1] == 0 or pair[0] >= least)):
+    raise WorldFileError(f"{where}post_spacing_m {_quote(value)}: give metres from {least:g} "
+                         f"to {meta['hi']:g} (a number or a [min, max] range), or 0 for no "
+                         "posts")
+  return float(pair[0]), float(pair[1])
 
 
 def _read_text(path: Path) -> str:
@@ -209,7 +242,8 @@ def _read_geojson(path: Path, cfg: WorldConfig, *, robot_width_m, plant_spacing_
   frame = BlockFrame(origin_lonlat=origin,
                      heading_rad=None if heading is None else math.radians(heading), **slopes)
   world = _from_rows(path, rows, cfg, frame, robot_width_m=robot_width_m, labels=labels,
-                     seed=seed, row_sizes=[p["sizes"] for p in parsed])
+                     seed=seed, row_sizes=[p["sizes"] for p in parsed],
+                     look=BlockLook(meta.get("season"), meta.get("post_spacing_m")))
   if "offset_m" in meta:
     world = _shifted(path, world, meta["offset_m"])
   return _frame(world, {p["label"]: p["name"] for p in parsed}, "geojson", error_m)
@@ -292,6 +326,10 @@ def _meta(path: Path, m) -> dict:
   for key in ("slope_pct", "cross_slope_pct"):
     if key in m:
       out[key] = _check_slope(m[key], key, where=where[:-1] + ": ")
+  if "season" in m:
+    out["season"] = check_season(m["season"], where)
+  if "post_spacing_m" in m:
+    out["post_spacing_m"] = check_post_spacing(m["post_spacing_m"], where)
   return out
 
 
@@ -429,11 +467,11 @@ def _shifted(path: Path, world: Vineyard, offset) -> Vineyard:
   return dataclasses.replace(
       world, plant_xy=world.plant_xy + d, row_y0=world.row_y0 + d[1], lanes=lanes,
       terrain_extent=(x0 + d[0], x1 + d[0], y0 + d[1], y1 + d[1]),
-      frame=dict(world.frame, offset_m=[float(v) for v in offset]))
+      frame=dict(world.frame, offset_m=[float(v) for v in offset]), **moved(world, d))
 
 
 def _read_csv(path: Path, cfg: WorldConfig, *, robot_width_m, args, seed) -> Vineyard:
-  rows, sizes = read_csv_rows(path, _read_text(path))
+  rows, sizes, block = read_csv_rows(path, _read_text(path))
   if not rows:
     raise WorldFileError(f"{path}: a header but no plants")
   plants = np.concatenate([np.asarray(r) for r in rows.values()])
@@ -449,6 +487,13 @@ def _read_csv(path: Path, cfg: WorldConfig, *, robot_width_m, args, seed) -> Vin
   world = _from_rows(path, [np.asarray(r) for r in rows.values()], cfg, BlockFrame(**slopes),
                      robot_width_m=robot_width_m, labels=labels, seed=seed,
                      row_sizes=[{k: float(np.mean(v)) for k, v in sizes[r].items()}
-                                for r in rows])
+                                for r in rows], look=_csv_block(path, block))
   return _frame(world, dict(zip(labels, rows)), "csv", None)
+
+
+def _csv_block(path: Path, block: dict) -> BlockLook:
+  """The season and post spacing a CSV's columns give ({key: (line, value)}), checked."""
+  checks = {"season": check_season, "post_spacing_m": check_post_spacing}
+  return BlockLook(**{key: checks[key](value, f"{path}: line {line}: ")
+                      for key, (line, value) in block.items()})
 

@@ -14,10 +14,15 @@ from mjxvine.worlds.layout import WorldFileError
 from mjxvine.worlds.limits import MAX_PLANTS, MAX_ROW_PLANTS, MAX_ROWS
 
 
-def read_csv_rows(path: Path, text: str) -> tuple[dict[str, list], dict[str, dict[str, list]]]:
-  """({row label: [(x, y), ...]}, {row label: {size key: [value, ...]}}) of the CSV `text`
-  of `path`, rows in the order first seen, plants in file order; else one-line
-  WorldFileError naming the file and line."""
+BLOCK_KEYS = ("season", "post_spacing_m")  # columns that say one thing of the whole block
+
+
+def read_csv_rows(path: Path, text: str
+                  ) -> tuple[dict[str, list], dict[str, dict[str, list]], dict[str, tuple]]:
+  """({row label: [(x, y), ...]}, {row label: {size key: [value, ...]}}, {block key:
+  (first line, value)}) of the CSV `text` of `path`, rows in the order first seen, plants
+  in file order; a block key's cells (`BLOCK_KEYS`, empty ones aside) must all say the
+  same. Else one-line WorldFileError naming the file and line."""
   reader = csv.reader(io.StringIO(text, newline=""))
   try:
     header = next((r for r in reader if any(c.strip() for c in r)), None)
@@ -36,9 +41,11 @@ def read_csv_rows(path: Path, text: str) -> tuple[dict[str, list], dict[str, dic
     if twice:
       raise WorldFileError(f"{path}: line {header_line}: column(s) "
                            f"{clean(', '.join(twice), 80)} twice in the header")
-    col = {c: names.index(c) for c in ("row", "x_m", "y_m", *SIZE_KEYS) if c in names}
+    col = {c: names.index(c) for c in ("row", "x_m", "y_m", *SIZE_KEYS, *BLOCK_KEYS)
+           if c in names}
     rows: dict[str, list] = {}
     sizes: dict[str, dict[str, list]] = {}
+    block: dict[str, tuple] = {}
     plants = 0
     for cells in reader:
       line = reader.line_num
@@ -71,9 +78,18 @@ def read_csv_rows(path: Path, text: str) -> tuple[dict[str, list], dict[str, dic
             raise WorldFileError(f"{path}: line {line}: {key} {v:g}: give a positive number "
                                  "of metres")
           given.setdefault(key, []).append(v)
+      for key in BLOCK_KEYS:
+        if key in col and cells[col[key]].strip():
+          v = (cells[col[key]].strip() if key == "season" else
+               _csv_number(path, line, cells, col, key))
+          first = block.setdefault(key, (line, v))
+          if first[1] != v:
+            raise WorldFileError(f"{path}: line {line}: {key} {short_repr(v)} differs from "
+                                 f"{short_repr(first[1])} on line {first[0]}: a block has "
+                                 "one")
   except csv.Error as e:
     raise WorldFileError(f"{path}: line {reader.line_num}: not CSV ({e})") from None
-  return rows, sizes
+  return rows, sizes, block
 
 
 def _csv_number(path: Path, line: int, cells: list, col: dict, key: str) -> float:

@@ -63,6 +63,7 @@ def write_geojson(world: Vineyard, path, origin_lonlat: Sequence[float] | None =
   for key in ("slope_pct", "cross_slope_pct"):
     if frame.get(key):
       meta[key] = float(frame[key])
+  meta.update(_block_look(world))
   features = []
   for j, name in enumerate(_row_names(world)):
     features.append(json.dumps({
@@ -74,16 +75,30 @@ def write_geojson(world: Vineyard, path, origin_lonlat: Sequence[float] | None =
   return atomic.write_text(path, text)
 
 
+def _block_look(world: Vineyard) -> dict:
+  """The season (unless classic) and the post spacing a file gave (`Vineyard.frame`) of
+  `world`, as a vineyard file says them."""
+  out = {} if world.season == "classic" else {"season": world.season}
+  spacing = (world.frame or {}).get("post_spacing_m")
+  if spacing is not None:
+    out["post_spacing_m"] = spacing[0] if spacing[0] == spacing[1] else list(spacing)
+  return out
+
+
 def write_csv(world: Vineyard, path) -> Path:
   """Writes `world`'s plants as a CSV (row,x_m,y_m in the world's block frame, m, to 1 µm;
-  size columns where rows share sizes), atomically; `read_vineyard` reads it back as the
-  same block."""
+  size columns where rows share sizes; the season and a given post spacing on the first
+  line), atomically; `read_vineyard` reads it back as the same block."""
   names = _row_names(world)
   sizes = [_row_sizes(world, j) for j in range(world.num_rows)]
   extra = [k for k in SIZE_KEYS if any(k in s for s in sizes)]
+  look = _block_look(world)
+  if isinstance(look.get("post_spacing_m"), list):  # (a cell holds one number)
+    del look["post_spacing_m"]
   out = io.StringIO()
   w = csv.writer(out, lineterminator="\n")
-  w.writerow(["row", "x_m", "y_m", *extra])
-  for (x, y), j in zip(world.plant_xy, world.plant_row):
-    w.writerow([names[j], f"{x:.6f}", f"{y:.6f}", *(sizes[j].get(k, "") for k in extra)])
+  w.writerow(["row", "x_m", "y_m", *extra, *look])
+  for i, ((x, y), j) in enumerate(zip(world.plant_xy, world.plant_row)):
+    w.writerow([names[j], f"{x:.6f}", f"{y:.6f}", *(sizes[j].get(k, "") for k in extra),
+                *(look.values() if i == 0 else [""] * len(look))])
   return atomic.write_text(path, out.getvalue())

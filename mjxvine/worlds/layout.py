@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from mjxvine.config import WorldConfig
-from mjxvine.robot_files import escaped
+from mjxvine.robot_files import escaped, short_repr
+from mjxvine.worlds.seasons import SCENERY_FIELDS, SEASONS, SHAPE_TABLES, dress
 
 TEST_LANE_SHAPES = ("straight", "straight", "hybrid", "curved", "curved")
 CENTERLINE_STEP_M = 0.25  # sampling of lane centerlines
@@ -43,6 +44,8 @@ class Lane:
 @dataclasses.dataclass(frozen=True)
 class Vineyard:
   """One generated world. Plant arrays are (P,) or (P, k) over the plants that exist.
+  (In every season but classic the trunks reach the cordon and the canopy arrays are the
+  envelope of the canopy lobes, from the cordon to the canopy's top.)
 
   plant_xy: (P, 2) m; plant_yaw: (P,) rad; plant_row: (P,) int; trunk_height: (P,) m;
   canopy_half: (P, 3) ellipsoid semi-axes (m); canopy_z: (P,) canopy centre height (m).
@@ -68,6 +71,19 @@ class Vineyard:
   # A world read from a vineyard file (`mjxvine.worlds.blocks`): where the block frame lies
   # in the file's frame (origin, heading, source); None for generated worlds.
   frame: dict | None = None
+  # What the vineyard looks like (`mjxvine.worlds.seasons`); a "classic" world has only
+  # the plants above. Posts: (Q, 2) m, (Q,) height above the ground (m), (Q,) radius (m).
+  # Shape tables: (n, 10) rows [x, y, z above the ground at (x, y), MuJoCo geom size (3),
+  # quaternion (4)], all in m: cordons (cylinders along the rows), canopy lobes and shoots
+  # (ellipsoids), tufts (ellipsoids on the lane floor).
+  season: str = "classic"
+  post_xy: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
+  post_height: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+  post_radius: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+  cordons: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 10)))
+  lobes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 10)))
+  shoots: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 10)))
+  tufts: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 10)))
 
   @property
   def num_rows(self) -> int:
@@ -92,6 +108,8 @@ class Vineyard:
              for l in v]
       elif f.name == "frame" and v is None:
         continue
+      elif f.name in SCENERY_FIELDS and (v == "classic" if f.name == "season" else not len(v)):
+        continue  # (a classic world's file is as it always was)
       d[f.name] = v.tolist() if isinstance(v, np.ndarray) else v
     return d
 
@@ -228,7 +246,8 @@ def _pick_gaps(rng, kind, row_of_slot, x_index, n_per_row, num_rows, cfg: WorldC
 
 
 def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
-  """Generates the train or test vineyard of `seed` (pure function of its arguments)."""
+  """Generates the train or test vineyard of `seed` (pure function of its arguments),
+  dressed for the config's season (`mjxvine.worlds.seasons`)."""
   if kind not in ("train", "test"):
     raise ValueError(f"kind must be 'train' or 'test', got {kind!r}")
   rng = np.random.default_rng([seed, 0 if kind == "train" else 1])
@@ -276,13 +295,14 @@ def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
   terrain = terrain_bumps(rng, cfg, extent)
   if cfg.slope_pct or cfg.cross_slope_pct:
     terrain = terrain + slope_plane(terrain.shape, extent, cfg.slope_pct, cfg.cross_slope_pct)
-  return Vineyard(
+  classic = Vineyard(
       kind=kind, seed=int(seed), inter_row_m=inter_row, spacing_m=spacing, length_m=length,
       row_y0=row_y0, plant_xy=xy, plant_yaw=plant_yaw[keep],
       plant_row=row, trunk_height=trunk_height[keep],
       trunk_radius=cfg.trunk_radius_m, canopy_half=canopy_half[keep],
       canopy_z=canopy_z[keep], lanes=lanes, terrain=terrain,
       terrain_extent=extent)
+  return dress(classic, cfg)  # (its own random stream: the same layout in every season)
 
 
 def _centerline(plant_xy, plant_row, lane, length):
@@ -316,7 +336,7 @@ class WorldFileError(ValueError):
   """A world file that is not one `save_world` wrote: one line naming the file and fault."""
 
 
-_OPTIONAL = {"width_m", "frame"}  # fields that older world files lack
+_OPTIONAL = {"width_m", "frame", *SCENERY_FIELDS}  # fields that older world files lack
 _NOTES = {"robot"}  # what a world file may say besides the world (`Vineyard.to_json`)
 MAX_SEED = 2**32 - 1  # numpy's seeds: a larger one would silently wrap
 
@@ -341,7 +361,9 @@ def _check_counts(path: Path, d: dict) -> None:
     if not isinstance(v, list):
       return 0
     return sum(len(r) for r in v if isinstance(r, list)) if nested else len(v)
+  scenery = sum(count(name) for name in ("post_xy", *SHAPE_TABLES))
   for what, n, most in (("plants", count("plant_xy"), limits.MAX_PLANTS),
+                        ("posts and shapes", scenery, limits.MAX_SCENERY),
                         ("lanes", count("lanes"), limits.MAX_ROWS - 1),
                         ("terrain cells", count("terrain", True), limits.MAX_TERRAIN_CELLS)):
     if n > most:
@@ -421,8 +443,17 @@ def _load_world(path: Path) -> Vineyard:
     shapes = {"row_y0": (-1,), "plant_xy": (plants, 2), "plant_yaw": (plants,),
               "plant_row": (plants,), "trunk_height": (plants,), "canopy_half": (plants, 3),
               "canopy_z": (plants,), "terrain": (-1, -1), "terrain_extent": (4,)}
+    posts = len(d["post_xy"]) if isinstance(d.get("post_xy"), list) else -1
+    shapes.update({"post_xy": (posts, 2), "post_height": (posts,), "post_radius": (posts,),
+                   **{name: (-1, 10) for name in SHAPE_TABLES}})
     for name, shape in shapes.items():
-      d[name] = _array(path, name, d[name], shape)
+      if name in SCENERY_FIELDS and d.get(name) == []:
+        d[name] = np.zeros((0,) + shape[1:])  # (json has no empty (0, 10) array)
+      elif name in d:
+        d[name] = _array(path, name, d[name], shape)
+    if d.setdefault("season", "classic") not in SEASONS:
+      raise WorldFileError(f"{path}: season {short_repr(d['season'])}: one of "
+                           f"{', '.join(SEASONS)}")
     d["plant_row"] = d["plant_row"].astype(np.int64)
     for name in ("inter_row_m", "spacing_m", "length_m", "trunk_radius"):
       d[name] = float(_array(path, name, d[name], ()))

@@ -18,6 +18,7 @@ from mjxvine.worlds.robots import RobotSpec
 CENTERLINE = dict(color="0.35", ls=":", lw=1.0)
 EOR_FORWARD = dict(marker=">", ms=7, mfc="black", mec="black")
 EOR_REVERSE = dict(marker="<", ms=7, mfc="white", mec="black")
+POST = dict(ls="", marker="s", ms=4, mfc="0.35", mec="black")
 
 
 def draw_vineyard(ax, world: Vineyard, *, numbers: bool = True, terrain: bool = True):
@@ -34,6 +35,8 @@ def draw_vineyard(ax, world: Vineyard, *, numbers: bool = True, terrain: bool = 
   widths = 2 * world.canopy_half[:, :2].mean(axis=1)
   ax.scatter(world.plant_xy[:, 0], world.plant_xy[:, 1], s=(widths * 40) ** 2 / 4,
              c="forestgreen", alpha=0.8, edgecolors="darkgreen", linewidths=0.5)
+  if len(world.post_xy):
+    ax.plot(world.post_xy[:, 0], world.post_xy[:, 1], **POST)
   for lane in world.lanes:
     c = lane.centerline
     ax.plot(c[:, 0], c[:, 1], **CENTERLINE)
@@ -54,7 +57,7 @@ def draw_vineyard(ax, world: Vineyard, *, numbers: bool = True, terrain: bool = 
       Line2D([], [], **CENTERLINE, label="lane centreline"),
       Line2D([], [], ls="", **EOR_FORWARD, label="EoR forward (+x end)"),
       Line2D([], [], ls="", **EOR_REVERSE, label="EoR reverse (x = 0 end)"),
-  ]
+  ] + ([Line2D([], [], **POST, label="trellis posts")] if len(world.post_xy) else [])
   return handles, image
 
 

@@ -13,6 +13,7 @@ from mjxvine.config import Config, WorldConfig
 from mjxvine.worlds.build import terrain_height
 from mjxvine.worlds.layout import (MAX_SEED, TERRAIN_CELL_M, Vineyard, generate_world,
                                    load_world)
+from mjxvine.worlds.seasons import classic_config, dress
 
 DATA_DIR = Path(__file__).parent / "data"
 TEST_WORLD_SEED = 0  # "test world 0": the one every result is measured on
@@ -22,11 +23,13 @@ TEST_WORLD_FILE = DATA_DIR / "test_world_seed0.json"
 def load_test_world(cfg: WorldConfig) -> Vineyard:
   """The test world every result is measured on: seed 0, loaded from the committed file.
 
-  The file is used only with the default world settings; a config that changes how
-  worlds are generated gets its test world generated (and its results are not comparable).
+  The file is used only with the default world settings, or with only the season and the
+  other realism keys changed: then it is dressed for them (`seasons.dress`, the same rows
+  in every season); a config that changes how worlds are laid out gets its test world
+  generated (and its results are not comparable).
   """
-  if cfg == WorldConfig() and TEST_WORLD_FILE.is_file():
-    return load_world(TEST_WORLD_FILE)
+  if classic_config(cfg) == WorldConfig() and TEST_WORLD_FILE.is_file():
+    return dress(load_world(TEST_WORLD_FILE), cfg)
   return generate_world("test", TEST_WORLD_SEED, cfg)
 
 

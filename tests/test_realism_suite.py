@@ -1,0 +1,103 @@
+"""The realism suite (`mjxvine.evaluation.realism`): its conditions as config values, its
+report, and the evaluate command's flags for it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mjxvine.config import SENSOR_PRESETS, load_config
+from mjxvine.evaluation import realism
+
+
+def test_each_condition_sets_only_its_factor():
+  """Every condition sets every factor: "ideal" turns them all off whatever the policy
+  trained with (here the realism recipe), a factor's condition turns on its own alone, and
+  "all" every one; nothing else of the config changes."""
+  trained = load_config("experiments/realism.yaml")
+  ideal = realism.condition_config(trained, "ideal")
+  defaults = load_config()
+  assert (ideal.sensor, ideal.world.season, ideal.world.tuft_density_per_m2) == (
+      defaults.sensor, "classic", 0.0)
+  assert {k: getattr(ideal.robot, k) for k in realism.ROBOT_HIGH} == {
+      k: getattr(defaults.robot, k) for k in realism.ROBOT_HIGH}
+  for name in realism.CONDITIONS:
+    c = realism.condition_config(trained, name)
+    for section in ("camera", "env", "sac", "train", "eval"):
+      assert getattr(c, section) == getattr(trained, section), (name, section)
+    off = [f for f in ("sensor", "world", "robot")
+           if getattr(c, f) == getattr(ideal, f)]
+    assert (len(off) == 3) == (name == "ideal"), name
+    assert (len(off) == 0) == (name == "all"), name
+  sensor = realism.condition_config(trained, "sensor").sensor
+  assert sensor.preset == realism.FIELD_SENSOR
+  assert sensor.stereo_baseline_m == SENSOR_PRESETS[realism.FIELD_SENSOR]["stereo_baseline_m"]
+  every = realism.condition_config(trained, "all")
+  assert every.sensor == sensor
+  for key, value in realism.ROBOT_HIGH.items():
+    assert getattr(every.robot, key) == value
+  assert realism.condition_config(trained, "winter").world.season == "winter"
+  with pytest.raises(ValueError, match="condition 'dusk'"):
+    realism.condition_config(trained, "dusk")
+
+
+def test_the_conditions_are_valid_config_values():
+  """Every condition's values pass the config's own checks (types, ranges, choices), as
+  `evaluate --condition` gives them."""
+  from mjxvine.evaluate import condition_overrides, parser
+  for name in realism.CONDITIONS:
+    args = parser().parse_args(["--policy", "oracle", "--out", "x", "--condition", name])
+    c = load_config(None, condition_overrides(args))
+    assert c == realism.condition_config(load_config(), name)
+
+
+def test_evaluate_refuses_a_condition_with_the_suite(capsys):
+  from mjxvine.evaluate import main
+  with pytest.raises(SystemExit) as e:
+    main(["--policy", "oracle", "--suite", "realism", "--sensor", "d435", "--out", "x"])
+  assert e.value.code == 2
+  assert "sets its own conditions" in capsys.readouterr().err
+  with pytest.raises(SystemExit) as e:
+    main(["--policy", "oracle", "--sensor", "d999", "--out", "x"])
+  assert e.value.code == 2
+  last = capsys.readouterr().err.strip().splitlines()[-1]  # argparse's: usage, then the error
+  assert "--sensor: invalid choice: 'd999' (choose from" in last
+
+
+def test_the_table_names_the_worst_case():
+  report = {"policy": "p.npz", "seed": 0, "runs": 5, "block": None, "wall_s": 3.0,
+            "conditions": {
+                "ideal": {"0": {"success": 50, "runs": 50, "mae_m": 0.02, "worst": {
+                    "row": "1F", "success": 5, "runs": 5, "mae_m_raw": 0.03}},
+                          "1": {"success": 49, "runs": 50, "mae_m": 0.03, "worst": {
+                              "row": "3R", "success": 4, "runs": 5, "mae_m_raw": 0.05}}},
+                "all": {"0": {"success": 40, "runs": 50, "mae_m": None, "worst": {
+                    "row": "4F", "success": 0, "runs": 5, "mae_m_raw": 0.4}},
+                        "1": {"success": 45, "runs": 50, "mae_m": 0.05, "worst": {
+                            "row": "2R", "success": 1, "runs": 5, "mae_m_raw": 0.2}}}}}
+  md = realism.report_markdown(report)
+  assert "| condition | world 0 | world 1 | worst case |" in md
+  assert "| ideal | 50/50, 0.020 | 49/50, 0.030 | 1 3R: 4/5 |" in md
+  assert "| all | 40/50, n/a | 45/50, 0.050 | 0 4F: 0/5 |" in md
+
+
+@pytest.mark.slow  # a compilation per condition
+def test_the_suite_drives_each_condition(tmp_path):
+  """The oracle (the true pose) on a short test world under three conditions: every run
+  reaches its row's end, and the report holds each condition and world."""
+  cfg = load_config(None, ["world.test_length_m=8", "camera.width=16", "camera.height=12",
+                           "eval.max_steps=200"])
+  from mjxvine.evaluation.rollout import PolicySource
+  report = realism.realism_suite(cfg, PolicySource("oracle"), tmp_path,
+                                 realism.SuiteRuns(runs=1, worlds=(2,)),
+                                 conditions=("ideal", "latency", "winter"), say=lambda m: None)
+  doc = json.loads((tmp_path / "report.json").read_text())
+  assert doc == json.loads(json.dumps(report))
+  assert list(doc["conditions"]) == ["ideal", "latency", "winter"]
+  for name, worlds in doc["conditions"].items():
+    r = worlds["2"]
+    assert r["success"] == r["runs"] == 10, name
+    assert np.isfinite(r["mae_m"])
+  assert "| latency | 10/10" in (tmp_path / "report.md").read_text()
