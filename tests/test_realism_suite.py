@@ -101,3 +101,30 @@ def test_the_suite_drives_each_condition(tmp_path):
     assert r["success"] == r["runs"] == 10, name
     assert np.isfinite(r["mae_m"])
   assert "| latency | 10/10" in (tmp_path / "report.md").read_text()
+
+
+def test_the_results_page_is_its_record():
+  """docs/results/realism.md's table of the shipped agent is its suite record, cell by cell
+  (success / runs, MAE to 3 decimals), and the README's MAE ranges are that record's."""
+  from pathlib import Path
+  root = Path(__file__).resolve().parent.parent
+  record = json.loads((root / "docs/results/realism/shipped-agent-suite.json").read_text())
+  page = (root / "docs/results/realism.md").read_text()
+  rows = {}
+  for line in page.splitlines():
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    if line.startswith("| ") and cells[0].split(" ")[0] in record["conditions"]:
+      rows[cells[0].split(" ")[0]] = cells[1:]
+  assert list(rows) == list(record["conditions"])
+  for name, cells in rows.items():
+    worlds = record["conditions"][name].values()
+    assert cells == [f"{r['success']}/{r['runs']}, {r['mae_m']:.3f}" for r in worlds], name
+  every = [r["mae_m"] for label, r in record["conditions"]["all"].items() if label.isdigit()]
+  ideal = [r["mae_m"] for label, r in record["conditions"]["ideal"].items() if label.isdigit()]
+  readme = " ".join((root / "README.md").read_text().split())
+  assert f"MAE is {min(every):.3f}-{max(every):.3f} m on test worlds 0-3" in readme
+  assert f"({min(ideal):.3f}-{max(ideal):.3f} m ideal)" in readme
+  runs = sum(r["runs"] for c in record["conditions"].values() for r in c.values())
+  assert all(r["success"] == r["runs"] for c in record["conditions"].values()
+             for r in c.values())
+  assert f"every one of its {runs:,} runs still reaches the end of the row" in readme
