@@ -110,6 +110,7 @@ def test_the_results_page_is_its_record():
   root = Path(__file__).resolve().parent.parent
   record = json.loads((root / "docs/results/realism/shipped-agent-suite.json").read_text())
   page = (root / "docs/results/realism.md").read_text()
+  page = page[page.index("## models/jackal.npz"):page.index("## A first agent")]
   rows = {}
   for line in page.splitlines():
     cells = [c.strip() for c in line.strip("|").split("|")]
@@ -128,3 +129,29 @@ def test_the_results_page_is_its_record():
   assert all(r["success"] == r["runs"] for c in record["conditions"].values()
              for r in c.values())
   assert f"every one of its {runs:,} runs still reaches the end of the row" in readme
+
+
+def test_the_trained_seed_table_is_its_records():
+  """The realism-trained seed's table: each cell the records' successes per world and
+  their MAE range."""
+  from pathlib import Path
+  root = Path(__file__).resolve().parent.parent / "docs/results"
+  reports = [json.loads((root / f"realism/{name}.json").read_text()) for name in (
+      "realism-seed0-selected-suite", "realism-seed0-last-suite", "shipped-agent-suite")]
+  page = (root / "realism.md").read_text()
+  page = page[page.index("## A first agent"):page.index("## The env step")]
+  checked = 0
+  for line in page.splitlines():
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    if not line.startswith("| ") or cells[0] not in realism.CONDITIONS:
+      continue
+    for cell, report in zip(cells[1:], reports):
+      if cell == "-":
+        assert cells[0] not in report["conditions"]
+        continue
+      worlds = [report["conditions"][cells[0]][str(w)] for w in range(4)]
+      maes = [r["mae_m"] for r in worlds if r["mae_m"] is not None]
+      assert cell == (", ".join(str(r["success"]) for r in worlds)
+                      + f"; MAE {min(maes):.3f}-{max(maes):.3f}"), (cells[0], cell)
+      checked += 1
+  assert checked >= 17

@@ -152,9 +152,10 @@ def report_markdown(report: dict) -> str:
   """The suite's table: a row per condition, success and MAE per world, the worst case."""
   names = list(report["conditions"])
   labels = list(report["conditions"][names[0]]) if names else []
+  block = f", {BLOCK_RUNS} on the block of {report['block']}" if report.get("block") else ""
   lines = [f"# The realism suite: {report['policy']}", "",
            f"Deterministic action; {report['runs']} runs per lane-direction on each test "
-           f"world, {BLOCK_RUNS} on a vineyard file's block; rollout seed "
+           f"world{block}; rollout seed "
            f"{report['seed']}. Each cell: successes / runs, MAE m (the mean of the rows). "
            "Conditions: docs/sim-to-real.md.", "",
            "| condition | " + " | ".join(f"world {w}" if w.isdigit() else w for w in labels)
