@@ -28,6 +28,7 @@ from mjxvine.evaluation.metrics import summarize
 from mjxvine.evaluation.rollout import Cases, PolicySource, all_lanes, rollout_cases
 from mjxvine.formatting import fmt
 from mjxvine.worlds import make_world, world_of
+from mjxvine.worlds.seasons import DRAWN_SEASONS
 
 FIELD_SENSOR = "d435"
 # The robot's faults at the high end of their field ranges (docs/sim-to-real.md): the
@@ -35,7 +36,7 @@ FIELD_SENSOR = "d435"
 ROBOT_HIGH = {"latency_steps": (2, 2), "velocity_lag_s": (0.25, 0.25),
               "mount_pitch_deg": (3.0, 3.0), "mount_roll_deg": (2.0, 2.0),
               "mount_height_m": (0.03, 0.03), "yaw_walk_deg": 0.3}
-SEASONS = ("spring", "summer", "winter")
+SEASONS = DRAWN_SEASONS  # spring, summer, winter
 ALL_SEASON = "summer"
 BLOCK_RUNS = 2  # runs of each lane-direction of a vineyard file's block  # the season of "all": posts, a full canopy, shoots and tufts
 
