@@ -12,7 +12,7 @@ at the e-stop.
 On the robot it needs numpy and the policy code only: mjxvine installed, or the two files
 mjxvine/deploy/numpy_policy.py and mjxvine/deploy/node_logic.py copied next to this node as
 mjxvine_deploy.py and mjxvine_node_logic.py (numpy and the standard library, Python 3.8+),
-plus rclpy, sensor_msgs, geometry_msgs and std_srvs.
+plus rclpy, sensor_msgs, geometry_msgs, std_msgs and std_srvs.
 
 Subscribes to `depth` (sensor_msgs/Image, 32FC1 metres or 16UC1 millimetres, read by
 `depth_from_ros`; other encodings are refused),
@@ -36,6 +36,11 @@ Parameters:
     ray that hits nothing (0 would read as an obstacle at the lens).
   timeout_s (float, 0.5): the most an image or IMU reading may be old, by its header
     stamp against the node's clock; older (or none): publish a stop.
+  stop_at_row_end (bool, true): when the policy's end-of-row detector fires
+    (`NumpyPolicy.step`: the image shows no plant of the row and the robot has driven the
+    last plants' depth past them), publish a stop and keep stopping until `zero_heading`
+    at the next row's entrance. Every cycle publishes std_msgs/Bool on `row_end`: true
+    once the row has ended.
 
 Safety: the checks and decisions are `mjxvine.deploy.node_logic.DriveLogic` (no ROS
 needed; tested without it); this file is the rclpy glue. Any refused input (an unknown
@@ -63,6 +68,7 @@ from geometry_msgs.msg import Twist
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, Imu
+from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
 
 try:
@@ -86,13 +92,15 @@ class VineyardNode(Node, DriveLogic):
     invalid = float(self.declare_parameter("invalid_depth", -1.0).value)
     fov_crop = bool(self.declare_parameter("fov_crop", True).value)
     max_speed = float(self.declare_parameter("max_speed", -1.0).value)
+    stop_at_row_end = bool(self.declare_parameter("stop_at_row_end", True).value)
     # One BLAS thread (needs threadpoolctl; else set OPENBLAS_NUM_THREADS=1). Invalid
     # pixels: the maximum range unless invalid_depth >= 0.
     policy = NumpyPolicy.load(path, preprocess=True, blas_threads=1,
                               invalid_depth=invalid if invalid >= 0 else None)
     DriveLogic.__init__(self, policy, timeout_s=timeout, max_speed=max_speed,
-                        fov_crop=fov_crop)
+                        fov_crop=fov_crop, stop_at_row_end=stop_at_row_end)
     self.cmd = self.create_publisher(Twist, "cmd_vel", 10)
+    self.row_end = self.create_publisher(Bool, "row_end", 10)
     self.create_service(Trigger, "zero_heading", self.on_zero_heading)
     self.create_subscription(Image, "depth", self.on_depth, qos_profile_sensor_data)
     if self.fov_crop:
@@ -172,9 +180,12 @@ class VineyardNode(Node, DriveLogic):
       decision = self.decide(self.now())
       if decision.level == "error":
         self.get_logger().error(decision.reason, throttle_duration_sec=LOG_EVERY_S)
+      elif decision.level == "info":
+        self.get_logger().info(decision.reason, throttle_duration_sec=LOG_EVERY_S)
       elif decision.reason is not None:
         self.get_logger().warn(decision.reason, throttle_duration_sec=LOG_EVERY_S)
       self.publish(decision.v, decision.w)
+      self.row_end.publish(Bool(data=decision.row_end))
     except Exception as e:  # noqa: BLE001 - stop, never die
       self.fault("timer", e)
 

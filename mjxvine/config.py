@@ -93,6 +93,9 @@ class WorldConfig:
   pool_size: int = _f(8, 1, 4096, doc="train worlds in the pool")
   train_files: str = _f("", doc="vineyard files (.geojson, .csv, comma-separated) whose "
                         "blocks join the pool of generated train worlds")
+  train_files_share: float = _f(0.5, 0.0, 1.0, doc="share of the training starts in the "
+                                "blocks of world.train_files (the rest in the generated "
+                                "worlds; without files, every start is in those)")
 
   MIN_POST_SPACING_M = 1.0  # line posts nearer than this are no trellis (not a key)
 
@@ -238,6 +241,9 @@ class EnvConfig:
   reverse_reward: float = _f(-500.0, -1e5, 1e5)
   yaw_limit_deg: float = _f(85.0, 1.0, 180.0)
   success_radius_m: float = _f(0.4, 0.01, 5.0)
+  past_end_m: float = _f(0.0, 0.0, 20.0, doc="0: an episode succeeds at the end of the "
+                         "row; > 0: only this far past its end line (m), anywhere "
+                         "sideways (`evaluate --past-end` drives into the headland)")
   pose_reset_every: int = _f(10, 1, 100000, doc="episodes between new start poses")
   start_yaw_jitter_deg: float = _f(10.0, 0.0, 90.0)
   start_lateral_jitter_m: float = _f(0.1, 0.0, 1.0)
@@ -327,6 +333,10 @@ class TrainConfig:
                       "XLA's convs but the first as a sum of slices; auto = native on the "
                       "CPU where it builds, else shift, and xla elsewhere")
   checkpoint_every_chunks: int = _f(10, 1, 1 << 20)
+  init_from: str = _f("", doc="start from a trained agent: a policy file with its agent "
+                      "file beside it (models/jackal.npz -> models/jackal.sac.npz) or the "
+                      "agent file; its warm-up drives with that actor "
+                      "(mjxvine.training.warm_start)")
   save_replay: bool = _f(False)
   num_seeds: int = _f(1, 1, 1024)
   sweep: str = _f("", doc="grid of hyper-parameters trained at once with the seeds (vmap), "

@@ -75,8 +75,12 @@ class VineyardEnv(Env):
                noise_factor: float | None = None):
     """`worlds` defaults to the config's pool of train worlds (`worlds.pool_worlds`:
     generated ones, seeds train_seed ..., and the blocks of `world.train_files`)."""
+    # the blocks of world.train_files close the default pool: `world.train_files_share` of
+    # the random starts are theirs
+    self.file_worlds = 0
     if worlds is None:
       worlds = pool_worlds(cfg)
+      self.file_worlds = len(worlds) - cfg.world.pool_size
     self.cfg = cfg
     self.worlds = list(worlds)
     self.robot = cfg.robot.spec
@@ -227,7 +231,14 @@ class VineyardEnv(Env):
     row length from the lane's start, `START_ALONG` unless given), jitter."""
     kw, kl, kd, ka, kx, ky = jax.random.split(key, 6)
     env = self.cfg.env
-    world = jax.random.randint(kw, (), 0, len(self.worlds))
+    if self.file_worlds:  # a file block with probability train_files_share
+      generated = len(self.worlds) - self.file_worlds
+      k_file, k_gen, k_which = jax.random.split(kw, 3)
+      world = jp.where(jax.random.bernoulli(k_which, self.cfg.world.train_files_share),
+                       jax.random.randint(k_file, (), generated, len(self.worlds)),
+                       jax.random.randint(k_gen, (), 0, generated))
+    else:
+      world = jax.random.randint(kw, (), 0, len(self.worlds))
     lane = jax.random.randint(kl, (), 0, self.lanes.count[world])
     if direction is None:
       direction = jp.where(jax.random.bernoulli(kd, 0.5), jp.float32(1), jp.float32(-1))
@@ -380,7 +391,12 @@ class VineyardEnv(Env):
     end_t = jp.where(pose["direction"] > 0, line[k - 1] - line[k - 2], line[0] - line[1])
     crossed = (xy - pose["eor"]) @ end_t > 0
 
-    success = (dist < env.success_radius_m) | (crossed & (jp.abs(lateral) < half_lane))
+    if env.past_end_m > 0:  # on into the headland; sideways there is no lane to leave
+      ahead = (xy - pose["eor"]) @ end_t / jp.linalg.norm(end_t)
+      success = ahead > env.past_end_m
+      lateral = jp.where(crossed, 0.0, lateral)
+    else:
+      success = (dist < env.success_radius_m) | (crossed & (jp.abs(lateral) < half_lane))
     collision = self.plant_clearance(pose["world"], xy, yaw) < COLLISION_MARGIN_M
     left_lane = jp.abs(lateral) > half_lane
     reversed_ = jp.abs(heading_err) > jp.deg2rad(env.yaw_limit_deg)

@@ -100,6 +100,10 @@ def parser() -> argparse.ArgumentParser:
   p.add_argument("--season", choices=SEASONS, default=None,
                  help="the vineyard's season (world.season): classic, spring, summer, winter, "
                       "mixed")
+  p.add_argument("--past-end", action="store_true",
+                 help="drive every lane on 3 m past its end into the headland and report "
+                      "where the end-of-row detector stopped (results.json's row_end: "
+                      "docs/evaluation.md, The end of the row)")
   p.add_argument("--seed", type=seed_type, default=0, metavar="N",
                  help="seed of the runs' random draws: their depth noise (the runs of a "
                       "lane differ by it) and the random policy's actions; the starts are "
@@ -139,6 +143,8 @@ def check_args(p: argparse.ArgumentParser, args) -> None:
     p.error("--sweep and --suite: choose one (the paper suite includes both sweeps)")
   if args.suite == "realism" and (args.condition or args.sensor or args.season):
     p.error("--suite realism sets its own conditions: drop --condition, --sensor, --season")
+  if args.past_end and (args.sweep or args.suite):
+    p.error("--past-end drives the protocol's runs: drop --sweep / --suite")
   if args.video_lanes and not filming:
     p.error("--video-lanes: give --video or --gif too")
 
@@ -204,7 +210,7 @@ def run_tables(cfg, source: str, args, world, out: Path) -> None:
   say(f"evaluating {args.policy} (config: {source}): {len(world.lanes) * 2 * runs} runs "
       f"on the {world.kind} world (compiling first)...")
   doc, tracks = run_protocol(cfg, PolicySource(args.policy, args.which, args.member), world,
-                             Protocol(runs, noise, seed=args.seed),
+                             Protocol(runs, noise, seed=args.seed, past_end=args.past_end),
                              video=lanes if filming else ())
   write_results(doc, world, out)
   print(results_markdown(doc))

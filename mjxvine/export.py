@@ -13,7 +13,9 @@ last one (`mjxvine.rundir.checkpoints`). The run's config.yaml gives the metadat
 (image size, depth range, network sizes, action box: `mjxvine.rundir.settings`). Of a run
 that trained several members (--num-seeds, sweeps), --member K picks one (default: the
 one checkpoints/best follows, member 0). The file format: `mjxvine.deploy.export`; the
-ONNX graph: `mjxvine.deploy.onnx`.
+ONNX graph: `mjxvine.deploy.onnx`. Beside an .npz it writes the policy's agent file
+(`<name>.sac.npz`: critics, targets and temperature too, what `train --init` continues
+from; `mjxvine.agent_file`).
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ import sys
 from pathlib import Path
 
 from mjxvine import config as config_lib
-from mjxvine.atomic import OutputError, check_output
+from mjxvine.agent_file import agent_path, checkpoint_agent, write_agent
+from mjxvine.atomic import OutputError, check_output, write_bytes
 from mjxvine.cli import MEMBER_HELP, WHICH_HELP, CommandParser, member_error, member_type
 from mjxvine.deploy.export import actor_arrays, check_actor_fits, export_actor, meta_from_config
 from mjxvine.deploy.numpy_policy import PolicyError
@@ -168,7 +171,7 @@ def export_run(args, src: Path) -> int:
       write = lambda: export_onnx(arrays, out, preprocess=args.preprocess,
                                   invalid_depth=args.invalid_depth)
     else:
-      write = lambda: export_actor(actor, out, meta)
+      write = lambda: _export_with_agent(actor, out, meta, item, args.member)
     failed = _write(write, out, "any previous file there is unchanged")
   except OutputError as e:
     return _fail(str(e))
@@ -177,6 +180,30 @@ def export_run(args, src: Path) -> int:
   if failed is None:
     print(f"wrote {out} (from {item}, config {source})", file=sys.stderr)
   return failed or 0
+
+
+def _export_with_agent(actor, out: Path, meta: dict, item: Path, member) -> None:
+  """The policy file, and beside it its agent file (`mjxvine.agent_file`: what `train
+  --init` continues from): the chosen policy's, copied, or the orbax checkpoint's. Where
+  there is none, an agent file left there by an earlier export is removed: it belongs to
+  another policy."""
+  export_actor(actor, out, meta)
+  agent, why = agent_path(out), None
+  if item.suffix == ".npz":  # RUN/selected.npz: its agent file where the run wrote one
+    if agent_path(item).is_file():
+      write_bytes(agent, agent_path(item).read_bytes())
+    else:
+      why = f"{item} has none beside it"
+  else:
+    try:
+      write_agent(agent, checkpoint_agent(item, member), meta)
+    except ValueError as e:  # a checkpoint of the actor alone (release 0.2.0)
+      why = str(e)
+  if why is None:
+    print(f"wrote {agent} (the agent file: train --init continues from it)", file=sys.stderr)
+  elif agent.is_file():
+    agent.unlink()
+    print(f"no agent file ({why}): removed the earlier {agent}", file=sys.stderr)
 
 
 def main(argv=None) -> int:

@@ -6,6 +6,8 @@
   python -m mjxvine.train --config experiments/default.yaml --seed 1 --out runs/seed1
   python -m mjxvine.train --config experiments/default.yaml --num-seeds 3 \\
       --sweep sac.learning_rate=2e-4,1e-3
+  python -m mjxvine.train --config experiments/adapt.yaml --init models/jackal.npz \\
+      --robot examples/my_robot.yaml --set world.train_files=examples/vineyard-block.geojson
 
 The command line of `mjxvine.training.loop.train`: it resolves the config (a new run's,
 or a resumed run's own with the keys that may change), checks the run directory, trains,
@@ -65,6 +67,13 @@ def parser() -> argparse.ArgumentParser:
                  help="the seed of the run's randomness (network weights, exploration, "
                  "starts, depth noise; the worlds have world.train_seed); sets train.seed, "
                  "as --set train.seed=N does")
+  p.add_argument("--init", type=key_type("train.init_from"), default=None, metavar="FILE",
+                 help="start from a trained agent: a policy file with its agent file beside "
+                 "it (models/jackal.npz: models/jackal.sac.npz) or the agent file; sets "
+                 "train.init_from (docs/adapt.md)")
+  p.add_argument("--robot", type=key_type("robot.name"), default=None,
+                 metavar="NAME|FILE.yaml", help="the robot to train: jackal, husky or a robot "
+                 "file (docs/your-robot.md); sets robot.name")
   p.add_argument("--num-seeds", type=key_type("train.num_seeds"), default=None,
                  metavar="K", help="train K members at once (vmap), 1-1024, their keys split "
                  "from train.seed's; sets train.num_seeds")
@@ -105,8 +114,10 @@ def resumed_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
     cfg = load_run_config(resolved, args.overrides)
   except ConfigError as e:
     p.exit(2, f"config error: {e}\n")
-  if args.seed is not None or args.num_seeds is not None or args.sweep:
-    p.error("--resume: the seed, seeds and sweep come from the run's config.yaml")
+  if (args.seed is not None or args.num_seeds is not None or args.sweep or args.init
+      or args.robot):
+    p.error("--resume: the seed, seeds, sweep, --init and --robot come from the run's "
+            "config.yaml")
   if args.out:
     p.error(f"--resume {run_dir} continues the run in its own directory: give no --out")
   check_train_files(p, cfg)
@@ -125,6 +136,10 @@ def new_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
   else:
     say(f"config: {resolve_config_path(args.config)}", flush=True)
   extra = [f"train.seed={args.seed}"] if args.seed is not None else []
+  if args.init is not None:
+    extra.append(f"train.init_from={args.init}")
+  if args.robot is not None:
+    extra.append(f"robot.name={args.robot}")
   if args.num_seeds is not None:
     extra.append(f"train.num_seeds={args.num_seeds}")
   if args.sweep:  # `config.parse_sweep` adds up the values of a key given twice
@@ -136,6 +151,7 @@ def new_config(p: argparse.ArgumentParser, args) -> tuple[Config, Path]:
   if (run_dir / "checkpoints").exists():
     p.error(f"{run_dir} already holds a run: use --resume {run_dir} or another --out")
   check_train_files(p, cfg)  # before the run directory is made
+  check_init(cfg)
   check_fits(cfg)
   try:  # before anything is compiled
     check_output(run_dir, "--out", directory=True)
@@ -205,6 +221,20 @@ def check_fits(cfg: Config) -> None:
   one line (exit 2), before the run directory is made or anything compiled."""
   try:
     check_memory(cfg)
+  except ConfigError as e:
+    print(f"config error: {e}", file=sys.stderr)
+    raise SystemExit(2) from None
+
+
+def check_init(cfg: Config) -> None:
+  """Reads the agent of `train.init_from` and checks it against the config's networks
+  before anything is made or compiled: one line (exit 2) when it is missing or does not
+  fit (`training.warm_start.load_agent`)."""
+  if not cfg.train.init_from:
+    return
+  from mjxvine.training.warm_start import load_agent, network_shapes
+  try:
+    load_agent(cfg.train.init_from, network_shapes(cfg))
   except ConfigError as e:
     print(f"config error: {e}", file=sys.stderr)
     raise SystemExit(2) from None

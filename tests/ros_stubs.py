@@ -1,6 +1,7 @@
 """Stub rclpy and ROS message modules, so that tests drive examples/ros2_vineyard_node.py
 without ROS: `load_node_module(monkeypatch, params, clock_s)` returns the example's module
-whose `VineyardNode` runs on `Node` below (its publishers append to `node.published`)."""
+whose `VineyardNode` runs on `Node` below (its cmd_vel publisher appends to
+`node.published`, every publisher to `node.topics[topic]`)."""
 
 import importlib.util
 import sys
@@ -37,6 +38,7 @@ class Node:
 
   def __init__(self, name):
     self.name, self.t, self.published, self._logger = name, self.clock_s, [], Logger()
+    self.topics = {}  # topic -> the messages published on it
 
   def declare_parameter(self, name, default):
     return SimpleNamespace(value=self.params.get(name, default))
@@ -47,8 +49,12 @@ class Node:
   def get_clock(self):
     return SimpleNamespace(now=lambda: SimpleNamespace(nanoseconds=int(self.t * 1e9)))
 
-  def create_publisher(self, *args):
-    return SimpleNamespace(publish=self.published.append)
+  def create_publisher(self, msg_type, topic, qos=None):
+    def publish(msg):
+      self.topics.setdefault(topic, []).append(msg)
+      if topic == "cmd_vel":
+        self.published.append(msg)
+    return SimpleNamespace(publish=publish)
 
   def create_service(self, *args):
     pass
@@ -64,6 +70,11 @@ class Twist:
   def __init__(self):
     self.linear = SimpleNamespace(x=0.0, y=0.0, z=0.0)
     self.angular = SimpleNamespace(x=0.0, y=0.0, z=0.0)
+
+
+class Bool:
+  def __init__(self, data=False):
+    self.data = data
 
 
 def load_node_module(monkeypatch, params: dict, clock_s: float = 100.0):
@@ -82,6 +93,8 @@ def load_node_module(monkeypatch, params: dict, clock_s: float = 100.0):
   module("sensor_msgs.msg", CameraInfo=object, Image=object, Imu=object)
   module("geometry_msgs")
   module("geometry_msgs.msg", Twist=Twist)
+  module("std_msgs")
+  module("std_msgs.msg", Bool=Bool)
   module("std_srvs")
   module("std_srvs.srv", Trigger=object)
   monkeypatch.setattr(Node, "params", params)

@@ -113,6 +113,20 @@ def test_vineyard_files_join_the_pool_of_train_worlds(tmp_path):
     pool_worlds(load_config(None, [f"world.train_files={tmp_path / 'nope.geojson'}"]))
 
 
+def test_the_blocks_of_files_get_their_share_of_the_starts(tmp_path):
+  """world.train_files_share of the random starts are in the file's block (the pool's last
+  world), the rest spread over the generated ones; evaluation's reset_to is unchanged."""
+  import jax
+  from mjxvine.env import VineyardEnv
+  env = VineyardEnv(_pool_with_block(tmp_path, ["world.train_files_share=0.25"]))
+  assert env.file_worlds == 1 and len(env.worlds) == 3
+  keys = jax.random.split(jax.random.PRNGKey(0), 4000)
+  worlds = np.asarray(jax.jit(jax.vmap(lambda k: env.sample_pose(k)["world"]))(keys))
+  share = np.mean(worlds == 2)
+  assert abs(share - 0.25) < 4 * np.sqrt(0.25 * 0.75 / 4000), share
+  assert abs(np.mean(worlds == 0) - 0.375) < 0.04 and abs(np.mean(worlds == 1) - 0.375) < 0.04
+
+
 @pytest.mark.slow  # compiles the env on a mixed pool: over 20 s on a 2-core CPU
 def test_the_oracle_drives_every_lane_of_a_mixed_pool(tmp_path):
   import jax

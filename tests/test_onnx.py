@@ -47,6 +47,12 @@ def _inputs(batch, seed=0):
   return depth, state
 
 
+def _feed(depth, state):
+  """The graph's inputs: the end-of-row memory of rows' entrances beside them."""
+  memory = np.tile(np.array([[0.0, np.inf]], np.float32), (len(depth), 1))
+  return {"depth": depth, "state": state, "row_memory": memory}
+
+
 def _session(path):
   opts = ort.SessionOptions()
   opts.intra_op_num_threads = 1
@@ -58,17 +64,17 @@ def test_onnx_matches_numpy_policy(small_policy, tmp_path):
   policy = deploy.NumpyPolicy.load(path)
   onnx_path = onnx_lib.export_onnx(path, tmp_path / "policy.onnx")
   sess = _session(onnx_path)
-  assert [i.name for i in sess.get_inputs()] == ["depth", "state"]
-  assert [o.name for o in sess.get_outputs()] == ["action"]
+  assert [i.name for i in sess.get_inputs()] == ["depth", "state", "row_memory"]
+  assert [o.name for o in sess.get_outputs()] == ["action", "row_ended", "row_memory_out"]
   for batch, seed in ((1, 0), (1, 1), (3, 2)):
     depth, state = _inputs(batch, seed)
-    (got,) = sess.run(["action"], {"depth": depth, "state": state})
+    (got,) = sess.run(["action"], _feed(depth, state))
     assert got.shape == (batch, 2) and got.dtype == np.float32
     np.testing.assert_allclose(got, policy.action(depth, state), atol=1e-5)
     np.testing.assert_allclose(got, np.asarray(flax_action(params, {"depth": depth,
                                                                     "state": state})), atol=1e-5)
   depth, state = _inputs(3, 3)
-  (got,) = sess.run(["action"], {"depth": depth, "state": state})
+  (got,) = sess.run(["action"], _feed(depth, state))
   assert got[:, 0].std() > 1e-3 and got[:, 1].std() > 1e-3  # a non-trivial comparison
   assert np.all(got >= [0.0, -1.0]) and np.all(got <= [0.5, 1.0])
   model = onnx.load(str(onnx_path))
@@ -83,7 +89,7 @@ def test_onnx_from_arrays_with_preprocess(small_policy, tmp_path):
   depth, state = _inputs(2, 4)
   depth[0, 5, 6], depth[1, 7, 8], depth[1, 9, 9] = np.nan, 9.0, -np.inf
   depth[0, 1:4, 1:30], depth[1, 20, 3], depth[1, 21, 4] = 0.0, -2.0, np.inf  # no return
-  (got,) = sess.run(["action"], {"depth": depth, "state": state})
+  (got,) = sess.run(["action"], _feed(depth, state))
   np.testing.assert_allclose(got, policy.action(depth, state), atol=1e-5)
   clean = policy.clean_depth(depth)
   assert clean[0, 2, 10] == clean[1, 21, 4] == clean[0, 5, 6] == 5.0  # the maximum range
@@ -91,7 +97,7 @@ def test_onnx_from_arrays_with_preprocess(small_policy, tmp_path):
   # another value for invalid pixels: the graph and the numpy policy agree
   sess = _session(onnx_lib.export_onnx((arrays, meta), tmp_path / "pre1.onnx", preprocess=True,
                                      invalid_depth=1.0))
-  (got1,) = sess.run(["action"], {"depth": depth, "state": state})
+  (got1,) = sess.run(["action"], _feed(depth, state))
   near = deploy.NumpyPolicy(arrays, meta, preprocess=True, invalid_depth=1.0)
   np.testing.assert_allclose(got1, near.action(depth, state), atol=1e-5)
   assert np.abs(got1 - got).max() > 1e-4  # the value matters
@@ -107,7 +113,7 @@ def test_export_cli_npz_to_onnx(small_policy, tmp_path, capsys):
   out = tmp_path / "cli.onnx"
   export.main(["--policy", str(path), "--format", "onnx", "--out", str(out)])
   depth, state = _inputs(3, 5)
-  (got,) = _session(out).run(["action"], {"depth": depth, "state": state})
+  (got,) = _session(out).run(["action"], _feed(depth, state))
   np.testing.assert_allclose(got, deploy.NumpyPolicy.load(path).action(depth, state), atol=1e-5)
   assert export.main(["--policy", str(path), "--out", str(tmp_path / "again.npz")]) == 2
   assert "only to --format onnx" in capsys.readouterr().err
@@ -143,7 +149,7 @@ def test_export_cli_orbax_to_onnx(small_policy, tmp_path):
   export.main(["--policy", str(run), "--format", "onnx",
                "--set", f"camera.height={H}", "--set", f"camera.width={W}"])
   depth, state = _inputs(2, 6)
-  (got,) = _session(run / "policy.onnx").run(["action"], {"depth": depth, "state": state})
+  (got,) = _session(run / "policy.onnx").run(["action"], _feed(depth, state))
   np.testing.assert_allclose(got, deploy.NumpyPolicy.load(path).action(depth, state), atol=1e-5)
 
 
@@ -171,7 +177,7 @@ def test_mirror_averaged_policy_is_symmetric_in_flax_numpy_and_onnx(small_policy
   np.testing.assert_allclose(got, 0.5 * (plain.action(depth, state) +
                                          plain.action(m_depth, m_state) * [1.0, -1.0]),
                              atol=1e-6)
-  (onnx_got,) = sess.run(["action"], {"depth": depth, "state": state})
+  (onnx_got,) = sess.run(["action"], _feed(depth, state))
   np.testing.assert_allclose(onnx_got, got, atol=1e-5)
   jax_got = jax.jit(lambda p, o: nw.act_deterministic(nets, p, o, mirror))(
       params, {"depth": jnp.asarray(depth), "state": jnp.asarray(state)})

@@ -481,6 +481,41 @@ def _assert_stop(logic, now, reason, level="error"):
   return d
 
 
+def test_the_end_of_the_row_stops_the_robot_until_the_next_row(policy):
+  """Plants on both sides, then none: the end-of-row detector fires once the robot has
+  driven the last plants' depth past them; the logic stops (level info, row_end) until
+  zero_heading at the next row's entrance. stop_at_row_end=False drives on."""
+  row = np.full((41, 41), 5000)
+  row[20:] = np.linspace(5000, 1000, 21).round()[:, None]
+  row[:20, :8] = row[:20, -8:] = 1500  # plants 1.5 m ahead on both sides
+  for stop in (True, False):
+    logic = nl.DriveLogic(policy, timeout_s=0.5, fov_crop=False, stop_at_row_end=stop)
+    logic.take_imu(_imu(0.0), NOW)
+    decisions = []
+    for i in range(200):
+      t = NOW + 0.1 * i
+      logic.take_imu(_imu(0.0, stamp=t), t)
+      logic.take_depth(_image(row if i < 10 else None, stamp=t), t)
+      d = logic.decide(t)
+      logic.commanded(d.v, d.w)
+      decisions.append(d)
+    ended = [d.row_end for d in decisions]
+    if not stop:
+      assert not any(ended) and all(d.v > 0 for d in decisions)
+      continue
+    first = ended.index(True)
+    # 1.5 m + the 0.3 m margin at the policy's speed (about 0.05 m per decision)
+    assert 10 + 1.8 / 0.05 - 1 <= first <= 10 + 1.8 / 0.02 and all(ended[first:])
+    assert all(d.v > 0 for d in decisions[:first])
+    assert all((d.v, d.w, d.level) == (0.0, 0.0, "info") for d in decisions[first:])
+    assert "end of the row" in decisions[-1].reason
+    assert logic.zero_heading()  # the next row's entrance: driving again
+    logic.take_depth(_image(row, stamp=NOW + 20.0), NOW + 20.0)
+    logic.take_imu(_imu(0.0, stamp=NOW + 20.0), NOW + 20.0)
+    d = logic.decide(NOW + 20.0)
+    assert d.reason is None and d.v > 0.05 and not d.row_end
+
+
 def test_imu_without_orientation_is_no_yaw(policy):
   """REP 145: orientation_covariance[0] == -1 means no orientation; a zero or non-unit
   quaternion has none either. Never yaw 0: a stop, with the reason."""
@@ -574,6 +609,9 @@ class _Broken:
       raise self._result
     return self._result
 
+  def step(self, depth, state):  # the node's call: the action and the end of the row
+    return self(depth, state), False
+
 
 def test_any_failure_is_a_stop(policy):
   for result, reason in ((RuntimeError("boom"), "decision failed (RuntimeError: boom)"),
@@ -651,6 +689,7 @@ def test_the_node_stops_on_any_exception_and_keeps_running(node_module):
   node.on_imu(_imu(0.0))
   node.on_depth(_image())
   assert _command(node)[0] > 0.05
+  assert [m.data for m in node.topics["row_end"]] == [False]  # published with each command
   # a callback that raises: a stop at once, logged; the input is not driven on
   node.take_depth = lambda msg, now: 1 / 0
   node.on_depth(_image())

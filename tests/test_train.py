@@ -85,7 +85,8 @@ def test_run_writes_logs_checkpoints_and_curve(first_run):
             for r in rows if "eval_mae_m" in r]
   assert best["chunk"] == 2 * (1 + scores.index(max(scores)))
   assert row["best_eval_mae_m"] == pytest.approx(best["eval_mae_m"])
-  assert sorted(p.name for p in (run / "eval_policies").iterdir()) == ["env40.npz", "env80.npz"]
+  assert sorted(p.name for p in (run / "eval_policies").iterdir()) == [
+      "env40.npz", "env40.sac.npz", "env80.npz", "env80.sac.npz"]  # each with its agent file
   # learning starts after the warm-up: losses are zero before, real after
   assert rows[0]["critic_loss"] == 0 and rows[-1]["critic_loss"] > 0
   assert rows[-1]["alpha"] == pytest.approx(0.2)
@@ -325,6 +326,45 @@ def test_the_same_command_gives_the_same_policy_file(first_run, tmp_path):
   assert (again / "eval_policies" / "env80.npz").read_bytes() == (
       first_run[0] / "eval_policies" / "env80.npz").read_bytes()
   assert read_policy_file(tmp_path / "again.npz")[1]["conv_tower"] == describe_conv_impl()
+
+
+def test_a_run_continues_from_a_kept_policy_and_its_agent_file(first_run, tmp_path, capsys):
+  """--init RUN/eval_policies/env80.npz: the new run starts from that agent (actor,
+  critics, targets, temperature); before any update its policy is the loaded one, bit for
+  bit; export writes the policy with its agent file; a policy without one is refused."""
+  from mjxvine.agent_file import agent_path, read_agent
+  from mjxvine.deploy import read_policy_file
+  from mjxvine.export import main as export_main
+  run, _ = first_run
+  kept = run / "eval_policies" / "env80.npz"
+  arrays, meta = read_agent(agent_path(kept))
+  policy_arrays = read_policy_file(kept)[0]
+  for name, value in policy_arrays.items():  # the agent's actor is the kept policy
+    np.testing.assert_array_equal(arrays[f"actor/{name}"], value)
+  assert {k.split("/")[0] for k in arrays} == {"actor", "critic", "target_critic", "log_alpha"}
+  # 20 env steps, all of them warm-up (40): no update, so the policy is the loaded one
+  new = tmp_path / "continued"
+  row = loop.train(_cfg(20, f"train.init_from={kept}"), new, quiet=False,
+                   evaluate_at_end=False)
+  assert row["env_steps"] == 20 and "networks and temperature from" in capsys.readouterr().err
+  out = tmp_path / "continued.npz"
+  assert export_main(["--policy", str(new), "--which", "last", "--out", str(out)]) == 0
+  for name, value in policy_arrays.items():
+    np.testing.assert_array_equal(read_policy_file(out)[0][name], value)
+  again, _ = read_agent(agent_path(out))  # from the orbax checkpoint
+  for name in ("critic", "target_critic"):
+    for key in (k for k in arrays if k.startswith(name + "/")):
+      np.testing.assert_array_equal(again[key], arrays[key])
+  np.testing.assert_allclose(again["log_alpha"], arrays["log_alpha"])
+  bare = tmp_path / "bare.npz"
+  bare.write_bytes(kept.read_bytes())  # a policy file alone
+  capsys.readouterr()
+  with pytest.raises(SystemExit) as e:
+    train_mod.main(["--config", "experiments/smoke.yaml", *sum((["--set", o] for o in OVERRIDES), []),
+                    "--init", str(bare), "--out", str(tmp_path / "refused")])
+  assert e.value.code == 2 and not (tmp_path / "refused").exists()
+  err = capsys.readouterr().err.strip()
+  assert len(err.splitlines()) == 1 and "bare.sac.npz" in err and "train.init_from" in err
 
 
 def test_a_wall_clock_stop_says_so_in_the_last_line_and_the_record(tmp_path, capsys):

@@ -79,7 +79,9 @@ def bench_deploy(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]
       depth = rng.uniform(0.0, cfg.camera.max_depth_m, (4, h, w, 1)).astype(np.float32)
       state = rng.uniform([0.0, -1.0, -np.pi], [0.5, 1.0, np.pi], (4, 3)).astype(np.float32)
       sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-      diff = float(np.abs(sess.run(["action"], {"depth": depth, "state": state})[0] -
+      memory = np.tile(np.array([[0.0, np.inf]], np.float32), (4, 1))  # rows' entrances
+      diff = float(np.abs(sess.run(["action"], {"depth": depth, "state": state,
+                                                "row_memory": memory})[0] -
                           deploy.NumpyPolicy.load(npz).action(depth, state)).max())
       version = metadata.version("onnxruntime")
       for n in threads:

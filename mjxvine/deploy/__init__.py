@@ -13,11 +13,12 @@ graph, `latency` times one decision; they import jax or onnx, so they are not im
 from mjxvine.deploy.numpy_policy import (FORMAT_VERSION, META_KEY, MIRROR_ACTION_SIGN,
                                          MIRROR_STATE_SIGN, ROS_DEPTH_ENCODINGS, NumpyPolicy,
                                          PolicyError, PolicyFormatError, PolicyInputError,
-                                         depth_from_ros, fov_window, policy_layout,
-                                         read_policy_file, ros_depth_to_metres,
-                                         set_blas_threads)
+                                         RowEnd, band_rows, depth_from_ros, fov_window,
+                                         policy_layout, read_policy_file, ros_depth_to_metres,
+                                         row_cue, row_start, row_update, set_blas_threads)
 
 __all__ = ["FORMAT_VERSION", "META_KEY", "MIRROR_ACTION_SIGN", "MIRROR_STATE_SIGN",
            "ROS_DEPTH_ENCODINGS", "NumpyPolicy", "PolicyError", "PolicyFormatError",
-           "PolicyInputError", "depth_from_ros", "fov_window", "policy_layout",
-           "read_policy_file", "ros_depth_to_metres", "set_blas_threads"]
+           "PolicyInputError", "RowEnd", "band_rows", "depth_from_ros", "fov_window",
+           "policy_layout", "read_policy_file", "ros_depth_to_metres", "row_cue", "row_start",
+           "row_update", "set_blas_threads"]

@@ -22,7 +22,7 @@ import numpy as np
 import mjxvine
 from mjxvine import atomic
 from mjxvine import config as config_lib
-from mjxvine.deploy.numpy_policy import FORMAT_VERSION, META_KEY
+from mjxvine.deploy.numpy_policy import FORMAT_VERSION, META_KEY, RowEnd
 
 STATE_LAYOUT = ("v_prev", "w_prev", "yaw")
 REQUIRED_META = ("image_size", "max_depth_m", "action_low", "action_high")
@@ -54,6 +54,8 @@ def meta_from_config(cfg: config_lib.Config) -> dict:
       "yaw_reference": cfg.env.yaw_reference,
       # the action is the mean of the actor's on the image and its mirror (sac.mirror_average)
       "mirror_average": cfg.sac.mirror_average,
+      # the end-of-row detector's settings (NumpyPolicy.step, numpy_policy.RowEnd)
+      "row_end": RowEnd()._asdict(),
       # the whole training config: `evaluate --policy FILE.npz` then evaluates as the run
       # does (world, episode limit, env options); the robot needs none of it
       "config": config_lib.to_dict(cfg),

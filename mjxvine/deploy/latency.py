@@ -52,7 +52,9 @@ def _inputs(h: int, w: int, max_depth: float, seed: int,
 
 def numpy_latency(path: str | Path, calls: int = 1000, seed: int = 0) -> dict:
   """`measure` of `NumpyPolicy.load(path)(depth, state)` for one (H, W) image; the
-  state's entries clipped into what the policy accepts (its action box)."""
+  state's entries clipped into what the policy accepts (its action box). Of a policy with
+  the end-of-row detector, also `step_median_ms` (`NumpyPolicy.step`, the action and the
+  end of the row) and `row_end_ms`, its cost beside the action (the two medians' gap)."""
   policy = NumpyPolicy.load(path)
   depth, state = _inputs(policy.height, policy.width, policy.max_depth, seed,
                          policy.state_size)
@@ -61,7 +63,13 @@ def numpy_latency(path: str | Path, calls: int = 1000, seed: int = 0) -> dict:
     policy(depth, state)
   except PolicyError as e:
     raise type(e)(f"{path}: {e}") from None
-  return measure(lambda: policy(depth, state), calls)
+  out = measure(lambda: policy(depth, state), calls)
+  try:
+    policy.step(depth, state)
+  except PolicyFormatError:  # a file without the detector's control_dt or fovy_deg
+    return out
+  step = measure(lambda: policy.step(depth, state), calls)["median_ms"]
+  return {**out, "step_median_ms": step, "row_end_ms": step - out["median_ms"]}
 
 
 def onnx_latency(path: str | Path, threads: int = 1, calls: int = 1000, seed: int = 0,
@@ -97,6 +105,8 @@ def onnx_latency(path: str | Path, threads: int = 1, calls: int = 1000, seed: in
     raise PolicyFormatError(f"{path}: unreadable mjxvine_meta ({first_line(e)})") from None
   depth, state = _inputs(h, w, max_depth, seed, state_shape[1])
   feed = {"depth": depth[None, :, :, None], "state": state[None]}
+  if "row_memory" in shapes:  # the end-of-row detector's memory: a row's entrance
+    feed["row_memory"] = np.array([[0.0, np.inf]], np.float32)
   try:  # once: a graph that does not run on its own inputs is no policy
     sess.run(["action"], feed)
   except Exception as e:  # noqa: BLE001 - onnxruntime's run errors have no public base

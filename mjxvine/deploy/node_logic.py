@@ -7,7 +7,7 @@ the command to publish or the reason to stop.
     logic.take_camera_info(info_msg)          # with fov_crop: the crop window, the size
     logic.take_depth(image_msg, now_s)        # now_s: the node's clock, s
     logic.take_imu(imu_msg, now_s)
-    decision = logic.decide(now_s)            # (v m/s, w rad/s, reason or None, level)
+    decision = logic.decide(now_s)            # (v m/s, w rad/s, reason, level, row_end)
     logic.commanded(decision.v, decision.w)   # what was published: the next v_prev, w_prev
 
 Nothing here raises on a bad message: a refused message is recorded (`depth_error`,
@@ -50,11 +50,13 @@ class Refused(ValueError):
 
 class Decision(NamedTuple):
   """The command to publish: v (m/s), w (rad/s); reason: why it is a stop (None when it
-  is the policy's action); level: "error" (a refused input) or "warn" (no fresh input)."""
+  is the policy's action); level: "error" (a refused input), "warn" (no fresh input) or
+  "info" (the end of the row); row_end: the row has ended (the node publishes it)."""
   v: float
   w: float
   reason: str | None = None
   level: str | None = None
+  row_end: bool = False
 
 
 def _stop(reason: str, level: str = "error") -> Decision:
@@ -187,10 +189,12 @@ class DriveLogic:
   against the node's clock) to be driven on. max_speed: a cap on v (m/s; negative: none).
   fov_crop: crop images to the policy's field of view from CameraInfo, and refuse images
   of another size than the CameraInfo's; until a valid one arrives, stop.
+  stop_at_row_end: stop for good when the policy's end-of-row detector fires
+  (`NumpyPolicy.step`) until `zero_heading` at the next row's entrance.
   """
 
   def __init__(self, policy, timeout_s: float = 0.5, max_speed: float = -1.0,
-               fov_crop: bool = True):
+               fov_crop: bool = True, stop_at_row_end: bool = True):
     self.policy = policy
     self.timeout = float(timeout_s)
     self.max_speed = float(max_speed)
@@ -206,6 +210,8 @@ class DriveLogic:
     self.depth_error = self.imu_error = self.camera_error = None  # why the last was refused
     self.imu_yaw = self.yaw_ref = None  # raw IMU yaw and the reference it is measured from
     self.v_prev = self.w_prev = 0.0
+    self.stop_at_row_end = bool(stop_at_row_end)
+    self.row_ended = False  # the detector fired in this row: stopped until zero_heading
 
   # ----------------------------------------------------------------- messages in
 
@@ -284,6 +290,8 @@ class DriveLogic:
     self.yaw_ref = self.imu_yaw
     self.yaw = self.policy.yaw_input(self.imu_yaw, self.yaw_ref)
     self.v_prev = self.w_prev = 0.0
+    self.row_ended = False  # a new row: the end-of-row detector starts afresh
+    self.policy.reset_row()
     return True
 
   def invalidate(self, what: str, reason: str) -> None:
@@ -311,6 +319,9 @@ class DriveLogic:
       return _stop(f"decision failed ({_fault(e)})")
 
   def _decide(self, now_s: float) -> Decision:
+    if self.row_ended:
+      return Decision(0.0, 0.0, "the end of the row: stop (zero_heading at the next row "
+                      "drives again)", "info", True)
     for error in (self.camera_error if self.fov_crop else None, self.depth_error,
                   self.imu_error):
       if error is not None:
@@ -330,7 +341,13 @@ class DriveLogic:
     prev = np.clip([self.v_prev, self.w_prev], self.policy.low, self.policy.high)
     state = np.array([prev[0], prev[1], self.yaw], np.float32)
     try:
-      v, w = self.policy(self.depth, state)
+      if self.stop_at_row_end:
+        (v, w), ended = self.policy.step(self.depth, state)
+        if ended:
+          self.row_ended = True
+          return self._decide(now_s)
+      else:
+        v, w = self.policy(self.depth, state)
     except PolicyError as e:  # never the last action: it was for another view
       return _stop(f"policy refused its input: {_fault(e)}")
     if self.max_speed >= 0:

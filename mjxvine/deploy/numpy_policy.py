@@ -83,6 +83,7 @@ import struct
 import threading
 import zipfile
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
@@ -133,6 +134,88 @@ ACTOR_ENTRY = re.compile(r"(tower/conv\d{1,2}|dense\d{1,2}|mean|log_std)/(kernel
 # CACHED_SHAPES input shapes only, so a call on thousands of images holds no more after.
 WORKSPACE_BYTES = 32 << 20
 CACHED_SHAPES = 2
+
+
+# ----------------------------------------------------------------------------------------
+# The end of the row, from the depth image and the robot's own speed: no pose, no map.
+#
+# In a lane, the plants of both rows fill the image above the horizon; past the last plant
+# the headland does not. Per frame, the cue (`row_cue`) is the share of the pixels at least
+# `RowEnd.min_elevation_deg` above the optical axis (so the ground never counts) that read
+# nearer than `RowEnd.near_m`, and their mean depth. A frame sees the row when that share
+# exceeds `RowEnd.seen_share`. The last frame that saw it shows the last plants just inside
+# the field of view, at about that mean depth; the detector (`row_update`) then adds up
+# the distance driven (commanded speed x control step) and says "row ended" once it passes
+# that depth plus `RowEnd.margin_m` (the end of a row lies a little past its last plant).
+# A gap of missing plants in one row does not fire it: the other row fills the image.
+# The functions take numpy or jax.numpy (`xp`): the evaluator (`evaluate --past-end`) and
+# this policy compute one formula.
+
+class RowEnd(NamedTuple):
+  """The detector's settings (a policy file's metadata "row_end" holds them)."""
+  near_m: float = 3.0  # a pixel nearer than this (m) is a plant (or post) of the lane
+  seen_share: float = 0.01  # a frame sees the row above this share of the band's pixels
+  min_elevation_deg: float = 3.0  # the band: rows whose centres lie this far above the axis
+  margin_m: float = 0.3  # driven past the last plant's depth before the row has ended
+
+  @classmethod
+  def from_meta(cls, meta: dict | None) -> "RowEnd":
+    """The settings of a policy file's "row_end" metadata (the defaults where absent);
+    ValueError naming a key that is unknown or not a finite number > 0."""
+    meta = meta or {}
+    unknown = sorted(set(meta) - set(cls._fields))
+    if unknown:
+      raise ValueError(f"row_end: unknown key {unknown[0]!r} (known: {', '.join(cls._fields)})")
+    for k, v in meta.items():
+      if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+          or v <= 0:
+        raise ValueError(f"row_end.{k} = {v!r}: must be a finite number > 0")
+    return cls(**{k: float(v) for k, v in meta.items()})
+
+
+class RowMemory(NamedTuple):
+  """What the detector keeps between frames: `driven_m`, the distance driven since the
+  last frame that saw the row (m), and `last_depth_m`, that frame's mean plant depth
+  (m; inf before the row was first seen, so the detector cannot fire before it). Arrays of
+  one shape (the robots' batch shape)."""
+  driven_m: object
+  last_depth_m: object
+
+
+def row_start(shape=(), xp=np) -> "RowMemory":
+  """The memory at the start of a row: nothing driven, the row not seen yet."""
+  return RowMemory(xp.zeros(shape, xp.float32), xp.full(shape, xp.inf, xp.float32))
+
+
+def band_rows(height: int, fovy_deg: float, min_elevation_deg: float) -> int:
+  """How many image rows, from the top, have centres at least `min_elevation_deg` above the
+  optical axis of a pinhole camera `height` rows high with vertical field `fovy_deg`."""
+  f = (height / 2) / math.tan(math.radians(fovy_deg) / 2)
+  centres = height / 2 - (np.arange(height) + 0.5)  # rows above the axis, pixels
+  return int(np.sum(np.arctan2(centres, f) >= math.radians(min_elevation_deg)))
+
+
+def row_cue(depth, rows: int, settings: RowEnd, xp=np):
+  """(share, mean depth m) of the band's plant pixels: `depth` (..., H, W) metres, the image
+  the policy sees; the top `rows` rows (`band_rows`). Mean depth is 0 where none."""
+  band = depth[..., :rows, :]
+  plant = band < settings.near_m
+  count = xp.sum(plant, axis=(-2, -1)).astype(xp.float32)
+  share = count / float(band.shape[-2] * band.shape[-1])
+  depth_sum = xp.sum(xp.where(plant, band, 0.0), axis=(-2, -1))
+  return share, depth_sum / xp.maximum(count, 1.0)
+
+
+def row_update(memory: RowMemory, share, mean_depth_m, speed_m_s, dt_s: float, settings: RowEnd,
+               xp=np) -> tuple:
+  """One frame: the new memory and whether the row has ended (bool, the memory's shape).
+  `share`, `mean_depth_m`: this frame's `row_cue`; `speed_m_s`: the speed commanded for the
+  last control step (the policy's v input); `dt_s`: the control step (s)."""
+  seen = share > settings.seen_share
+  driven = xp.where(seen, 0.0, memory.driven_m + xp.maximum(speed_m_s, 0.0) * dt_s)
+  last = xp.where(seen, mean_depth_m, memory.last_depth_m)
+  ended = ~seen & (driven >= last + settings.margin_m)
+  return RowMemory(driven.astype(xp.float32), last.astype(xp.float32)), ended
 
 
 class PolicyError(ValueError):
@@ -524,6 +607,10 @@ def policy_layout(meta: dict) -> dict:
     raise _bad_meta("yaw_reference", out["yaw_reference"], '"start" or "world"')
   out["yaw_offset_deg"] = _meta_number(meta, "yaw_offset_deg", -360.0 - 1e-9, 360.0, 0.0)
   out["control_dt"] = _meta_number(meta, "control_dt", 0.0, 10.0, None)
+  try:  # the end-of-row detector's settings (files before it: the defaults)
+    out["row_end"] = RowEnd.from_meta(_meta_value(meta, "row_end", None))
+  except (ValueError, TypeError) as e:
+    raise PolicyFormatError(f"policy metadata {e}") from None
   for key in ("fovx_deg", "fovy_deg"):
     out[key] = _meta_number(meta, key, 0.0, 180.0, None)
   h, w = out["image_size"]
@@ -679,6 +766,8 @@ class NumpyPolicy:
                               f"{self.low.shape[0]} action entries")
     self.layout = layout
     self._state_bounds()
+    self.row_end = layout["row_end"]  # the end-of-row detector (`step`)
+    self.row_memory = row_start()
 
   def _workspace_bytes(self, batch: int) -> int:
     """Bytes of the conv buffers (`_ConvWork`: cols and out) for `batch` images."""
@@ -975,6 +1064,35 @@ class NumpyPolicy:
     else:
       yaw = imu_yaw + math.radians(self.layout["yaw_offset_deg"])
     return (yaw + math.pi) % (2 * math.pi) - math.pi
+
+  def step(self, depth, state, preprocess: bool | None = None,
+           wrap_yaw: bool | None = None) -> tuple[np.ndarray, bool]:
+    """One robot's frame: (action (A,), whether the row has ended). The detector (the end
+    of the row section above) reads the image as the policy sees it (cleaned with
+    `preprocess`) and the state's v_prev, and keeps its memory (`row_memory`) from call to
+    call: `reset_row()` at each row's entrance. Errors as `action`'s; PolicyInputError
+    for a batch, PolicyFormatError for a file without the control step or vertical field
+    of view the detector needs."""
+    act = self.action(depth, state, preprocess, wrap_yaw)
+    if act.ndim != 1:
+      raise PolicyInputError("step takes one robot's frame (depth (H, W), state (S,)); a "
+                             "batch: action, and row_cue / row_update per robot")
+    if self.control_dt is None or self.layout["fovy_deg"] is None or \
+        "v_prev" not in self.state_layout:
+      raise PolicyFormatError("this policy file lacks control_dt, fovy_deg or a v_prev "
+                              "state entry: no end-of-row detector (export it again)")
+    pre = self.preprocess if preprocess is None else preprocess
+    x, s, _ = self._check(depth, state, pre, False)
+    rows = band_rows(self.height, self.layout["fovy_deg"], self.row_end.min_elevation_deg)
+    share, depth_m = row_cue(x[0, :, :, 0], rows, self.row_end)
+    self.row_memory, ended = row_update(self.row_memory, share, depth_m,
+                                        s[0, self.state_layout.index("v_prev")],
+                                        self.control_dt, self.row_end)
+    return act, bool(ended)
+
+  def reset_row(self) -> None:
+    """Forgets the last row: the end-of-row detector starts afresh (at a row's entrance)."""
+    self.row_memory = row_start()
 
   def __call__(self, depth, state, preprocess: bool | None = None,
                wrap_yaw: bool | None = None):

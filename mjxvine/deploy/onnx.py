@@ -15,7 +15,8 @@ import numpy as np
 
 from mjxvine import atomic
 from mjxvine.deploy.numpy_policy import (META_KEY, MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN,
-                                         NumpyPolicy, read_policy_file)
+                                         NumpyPolicy, RowEnd, band_rows, policy_layout,
+                                         read_policy_file)
 
 ONNX_OPSET = 17
 ONNX_META_KEY = "mjxvine_meta"
@@ -123,12 +124,54 @@ def _action(g: _Graph, x: str, arrays: dict, meta: dict, mirror: bool) -> str:
   return g.node("Mul", [x, g.const("half", np.float32(0.5))], "action")
 
 
+def _row_end(g: _Graph, depth: str, state: str, meta: dict, state_layout: list) -> None:
+  """`NumpyPolicy.step`'s end-of-row detector (`row_cue`, `row_update`) on depth (B, H, W,
+  1) m, the state (its v_prev) and the memory input row_memory (B, 2) [driven m, last
+  depth m] ([0, inf] at a row's entrance): outputs row_ended (B,) bool and
+  row_memory_out (B, 2), the next frame's row_memory."""
+  s = RowEnd.from_meta(meta.get("row_end"))
+  h, w = (int(v) for v in meta["image_size"])
+  rows = band_rows(h, float(meta["fovy_deg"]), s.min_elevation_deg)
+  f32 = lambda name, v: g.const(name, np.float32(v))
+  i64 = lambda name, v: g.const(name, np.asarray(v, np.int64))
+  band = g.node("Slice", [depth, i64("band_start", [0]), i64("band_end", [rows]),
+                          i64("band_axis", [1])], "row_band")
+  plant = g.node("Less", [band, f32("row_near", s.near_m)], "row_plant")
+  axes = i64("row_axes", [1, 2, 3])
+  count = g.node("ReduceSum", [g.node("Cast", [plant], "row_plant_f", to=1), axes],
+                 "row_count", keepdims=0)
+  share = g.node("Div", [count, f32("row_band_size", rows * w)], "row_share")
+  total = g.node("ReduceSum", [g.node("Where", [plant, band, f32("row_zero", 0.0)],
+                                      "row_plant_depth"), axes], "row_depth_sum", keepdims=0)
+  mean = g.node("Div", [total, g.node("Max", [count, f32("row_one", 1.0)], "row_count1")],
+                "row_mean_depth")
+  column = lambda x, i, name: g.node("Squeeze", [g.node(  # (B, 1) -> (B,)
+      "Gather", [x, i64(f"{name}_index", [i])], f"{name}_1", axis=1), i64(f"{name}_axis", [1])],
+      name)
+  v = column(state, state_layout.index("v_prev"), "row_v")
+  seen = g.node("Greater", [share, f32("row_seen_share", s.seen_share)], "row_seen")
+  step = g.node("Mul", [g.node("Max", [v, "row_zero"], "row_v_forward"),
+                        f32("row_dt", float(meta["control_dt"]))], "row_step")
+  driven = g.node("Where", [seen, "row_zero", g.node("Add", [
+      column("row_memory", 0, "row_driven_in"), step], "row_driven_more")], "row_driven")
+  last = g.node("Where", [seen, mean, column("row_memory", 1, "row_last_in")], "row_last")
+  far = g.node("GreaterOrEqual", [driven, g.node("Add", [last, f32("row_margin", s.margin_m)],
+                                                "row_needed")], "row_far")
+  g.node("And", [g.node("Not", [seen], "row_unseen"), far], "row_ended")
+  unsq = lambda x: g.node("Unsqueeze", [x, i64(f"{x}_axis", [1])], f"{x}_col")
+  g.node("Concat", [unsq(driven), unsq(last)], "row_memory_out", axis=1)
+
+
 def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = False,
                invalid_depth: float | None = None):
   """The actor's deterministic action as an `onnx.ModelProto` (opset 17).
 
-  Inputs: depth (B, H, W, 1) float32 metres, state (B, S) float32. Output: action (B, A)
-  float32 in the action box, as `NumpyPolicy.action`. The depth scale is folded into the
+  Inputs: depth (B, H, W, 1) float32 metres, state (B, S) float32, and row_memory (B, 2)
+  float32, the end-of-row detector's memory (`row_memory_out` of the last frame; [0, inf]
+  at a row's entrance). Outputs: action (B, A)
+  float32 in the action box, as `NumpyPolicy.action`; row_ended (B,) bool and
+  row_memory_out (B, 2), the memory to feed back with the next frame, as `NumpyPolicy.step`
+  (files without control_dt, fovy_deg or v_prev: the action alone). The depth scale is folded into the
   first conv kernel. preprocess=True puts `NumpyPolicy.clean_depth` in front: NaN, inf and
   readings <= 0 (no return) -> `invalid_depth` (None: max_depth_m, what the simulator
   shows), then a clip to [0, max_depth]; otherwise inputs must be finite.
@@ -141,6 +184,12 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
   state_size = arrays["dense0/kernel"].shape[0] - arrays["tower/conv0/kernel"].shape[-1]
   g = _Graph()
   x = _clean_depth(g, "depth", meta, invalid_depth) if preprocess else "depth"
+  layout = policy_layout(meta)
+  names = NumpyPolicy(arrays, meta).state_layout
+  row_end = (layout["control_dt"] is not None and layout["fovy_deg"] is not None
+             and "v_prev" in names)
+  if row_end:
+    _row_end(g, x, "state", meta, names)
   # (B, H, W, 1) -> (B, 1, H, W): a reshape, since there is one channel.
   x = g.node("Reshape", [x, g.const("nchw_shape", np.array([-1, 1, h, w], np.int64))], "nchw")
   mirror = bool(meta.get("mirror_average", False))
@@ -150,8 +199,13 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
   graph = helper.make_graph(
       g.nodes, "mjxvine_actor",
       [helper.make_tensor_value_info("depth", TensorProto.FLOAT, ["batch", h, w, 1]),
-       helper.make_tensor_value_info("state", TensorProto.FLOAT, ["batch", state_size])],
-      [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", actions])],
+       helper.make_tensor_value_info("state", TensorProto.FLOAT, ["batch", state_size])]
+      + ([helper.make_tensor_value_info("row_memory", TensorProto.FLOAT, ["batch", 2])]
+         if row_end else []),
+      [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", actions])]
+      + ([helper.make_tensor_value_info("row_ended", TensorProto.BOOL, ["batch"]),
+          helper.make_tensor_value_info("row_memory_out", TensorProto.FLOAT, ["batch", 2])]
+         if row_end else []),
       initializer=g.inits)
   model = helper.make_model(graph, producer_name="mjxvine",
                             producer_version=str(meta.get("mjxvine_version", "")),

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mjxvine.agent_file import agent_path
 from mjxvine.atomic import write_bytes, write_text
 from mjxvine.config import Config
 from mjxvine.episodes import OUTCOMES
@@ -255,6 +256,9 @@ def select(cfg: Config, run_dir: Path, say=print, member: int | None = None,
   record["selected"] = best["env_steps"]
   # over an earlier choice, whole: it stays until this one is ready (a stop keeps it)
   write_bytes(selected_path, kept[best["env_steps"]].read_bytes())
+  agent = agent_path(kept[best["env_steps"]])
+  if agent.is_file():  # what training can continue from (`train --init`)
+    write_bytes(agent_path(selected_path), agent.read_bytes())
   write_text(record_path, json.dumps(record, indent=1))
   say(f"{who}selected the policy of {best['env_steps']} env steps: {selected_path}")
   return record

@@ -67,7 +67,23 @@ def results_markdown(doc: dict) -> str:
             "the mean of the rows, as the paper's; pooled over every trajectory point: MAE "
             f"{metric_cell(o, 'mae_m')} m, RMSE {metric_cell(o, 'rmse_m')} m.",
             "", f"Rollout wall-clock: {doc['wall_s']:.1f} s."]
+  if "row_end" in doc:
+    lines += [""] + row_end_markdown(doc["row_end"])
   return "\n".join(lines) + "\n"
+
+
+def row_end_markdown(section: dict) -> list[str]:
+  """The `--past-end` table: where the end-of-row detector stopped, per lane-direction."""
+  cell = lambda r: "-" if r["stop_error_m"] is None else f"{r['stop_error_m']:+.2f}"
+  lines = ["## The end of the row", "",
+           f"Each run drove on {section['past_end_m']:g} m past the end of the row (success "
+           "above: it got there); the stop is where the end-of-row detector first fired, in "
+           "m along the row from its end (< 0: before it).", "",
+           "| lane | stop m (mean) | within 1 m | false stops | no stop |", "|---|---|---|---|---|"]
+  for key, r in [*section["rows"].items(), ("all", section)]:
+    lines.append(f"| {key} | {cell(r)} | {r['stopped_within_1m']}/{r['runs']} | "
+                 f"{r['false_stops']} | {r['missed']} |")
+  return lines
 
 
 def figure_title(doc: dict) -> str:

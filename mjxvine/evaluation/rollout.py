@@ -38,7 +38,8 @@ def lane_steps(cfg: Config, world, lane: int) -> int:
   return steps_for_length(cfg.eval.max_steps, line[-1, 0] - line[0, 0])
 
 
-def protocol_steps(env, policy: Policy, b: int, record: Sequence[int] = ()):
+def protocol_steps(env, policy: Policy, b: int, record: Sequence[int] = (),
+                   cue: Callable | None = None):
   """The evaluator's stepping of `b` envs of `env` (a `VineyardEnv`), jitted:
   (reset, step, frames).
 
@@ -48,8 +49,9 @@ def protocol_steps(env, policy: Policy, b: int, record: Sequence[int] = ()):
   step(carry, key) -> (carry, out): every env takes the policy's action and one control
   step; alive turns False after an env's episode ended;
   out = (xy (b, 2), action (b, 2), alive (b,) before the step, outcome (b,),
-  frames(state)). frames(state): the qpos (R, nq) and float16 depth (R, H, W) of the
-  envs `record`, () when none. The evaluator and `drive` step through these.
+  frames(state), cue(depth (b, H, W)) of the new image or () without `cue`).
+  frames(state): the qpos (R, nq) and float16 depth (R, H, W) of the envs `record`, ()
+  when none. The evaluator and `drive` step through these.
   """
   rec = jp.asarray(list(record), jp.int32)
 
@@ -73,7 +75,9 @@ def protocol_steps(env, policy: Policy, b: int, record: Sequence[int] = ()):
     state, alive = carry
     action = jax.vmap(policy)(state, jax.random.split(k, b))
     state = jax.vmap(env.step)(state, action)
-    out = (state.pipeline_state.qpos[:, :2], action, alive, state.info["outcome"], frames(state))
+    seen = cue(state.obs["depth"][..., 0]) if cue is not None else ()
+    out = (state.pipeline_state.qpos[:, :2], action, alive, state.info["outcome"],
+           frames(state), seen)
     return (state, alive & (state.done == 0)), out
 
   return jax.jit(reset), body, frames
@@ -91,7 +95,8 @@ class EnvStarts(NamedTuple):
 
 
 def rollout(env, policy: Policy, starts: EnvStarts, key, max_steps: int,
-            record: Sequence[int] = (), stop: Callable[[np.ndarray], bool] | None = None):
+            record: Sequence[int] = (), stop: Callable[[np.ndarray], bool] | None = None,
+            cue: Callable | None = None):
   """Runs one episode per start of `starts` (`EnvStarts`, B of them) from its lane's
   start, batched. `stop(outcome)`, asked after every `CHUNK_STEPS` steps with the
   outcome codes so far ((B,), 0 for an episode still running): True ends the rollout
@@ -102,11 +107,13 @@ def rollout(env, policy: Policy, starts: EnvStarts, key, max_steps: int,
   alive (T, B) (step taken before the episode ended, inclusive), outcome (B,), steps (B,),
   and for the envs `record` (R of them, for videos) the frames from the start on:
   {"qpos": (T + 1, R, nq), "depth": (T + 1, R, H, W) float16 m, the image the policy saw}
-  ({} when none are recorded).
+  ({} when none are recorded); with `cue` (depth (B, H, W) -> a tuple of (B,) arrays: a
+  per-frame summary, `mjxvine.deploy.row_cue`) also "cue": that tuple of (T, B) arrays, of
+  the image after each step.
   """
   b = len(starts.lanes)
   k_reset, k_run = jax.random.split(key)
-  reset, body, frames = protocol_steps(env, policy, b, record)
+  reset, body, frames = protocol_steps(env, policy, b, record, cue)
   carry = reset(k_reset, jp.asarray(starts.lanes), jp.asarray(starts.directions, jp.float32),
                 None if starts.worlds is None else jp.asarray(starts.worlds, jp.int32),
                 None if starts.noise is None else jp.asarray(starts.noise, jp.float32))
@@ -126,11 +133,11 @@ def rollout(env, policy: Policy, starts: EnvStarts, key, max_steps: int,
       outs.append(out)
     return carry, jax.tree.map(lambda *x: jp.stack(x), *outs)
 
-  xy, act, alive, outcome = [], [], [], np.zeros(b, np.int32)
+  xy, act, alive, cues, outcome = [], [], [], [], np.zeros(b, np.int32)
   recorded = [jax.tree.map(lambda x: np.asarray(x)[None], frames(state))]
   for t0 in range(0, max_steps, CHUNK_STEPS):
     k_run, k = jax.random.split(k_run)
-    carry, (p, a, al, oc, fr) = run(carry, k)
+    carry, (p, a, al, oc, fr, cu) = run(carry, k)
     al, oc = np.asarray(al), np.asarray(oc)
     for t in range(al.shape[0]):
       ended = al[t] & (oc[t] != 0) & (outcome == 0)
@@ -139,6 +146,7 @@ def rollout(env, policy: Policy, starts: EnvStarts, key, max_steps: int,
     act.append(np.asarray(a))
     alive.append(al)
     recorded.append(jax.tree.map(np.asarray, fr))
+    cues.append(jax.tree.map(np.asarray, cu))
     if not np.asarray(carry[1]).any() or (stop is not None and stop(outcome)):
       break
   xy, act, alive = (np.concatenate(x)[:max_steps] for x in (xy, act, alive))
@@ -147,6 +155,8 @@ def rollout(env, policy: Policy, starts: EnvStarts, key, max_steps: int,
   if len(record):
     qpos, depth = (np.concatenate(x)[:max_steps + 1] for x in zip(*recorded))
     tracks = {"qpos": qpos, "depth": depth}
+  if cue is not None:
+    tracks["cue"] = tuple(np.concatenate(x)[:max_steps] for x in zip(*cues))
   return xy, act, alive, outcome, alive.sum(0), tracks
 
 
@@ -171,7 +181,7 @@ def drive(env, policy: Policy, lane: int, direction: str, key, max_steps: int | 
   while t < limit:  # the evaluator's keys: one per step, CHUNK_STEPS from each chunk key
     k_run, k = jax.random.split(k_run)
     for k_step in jax.random.split(k, CHUNK_STEPS)[:limit - t]:
-      carry, (_, action, _, outcome, _) = step(carry, k_step)
+      carry, (_, action, _, outcome, _, _) = step(carry, k_step)
       code, t = int(outcome[0]), t + 1
       yield np.asarray(carry[0].pipeline_state.qpos[0]), np.asarray(action[0]), code
       if code != RUNNING:
@@ -223,12 +233,12 @@ class PolicySource(NamedTuple):
 
 
 def rollout_cases(cfg: Config, source: PolicySource, worlds: list, cases, *,
-                  seed: int = 0, record: Sequence[int] = (), stop=None):
+                  seed: int = 0, record: Sequence[int] = (), stop=None, cue=None):
   """One batched rollout of every case: (world index, lane (1-based), direction "F"/"R",
   noise factor) tuples over `worlds` (`Vineyard`s; see `Cases`), driven by the policy of
-  `source` with rollout key `seed` (`stop`: see `rollout`). Returns (raw, policy name)
-  with raw = dict of the `rollout` arrays (xy, act, alive, outcome, steps, frames of the
-  cases `record`) and wall_s (s)."""
+  `source` with rollout key `seed` (`stop`, `cue`: see `rollout`). Returns (raw, policy
+  name) with raw = dict of the `rollout` arrays (xy, act, alive, outcome, steps, frames of
+  the cases `record`, the `cue` arrays or None) and wall_s (s)."""
   from mjxvine.env import VineyardEnv  # (the env's imports are heavy: only when needed)
   # the protocol's episode limits (`lane_steps`, applied by the env per lane), whatever
   # the training episodes were
@@ -243,9 +253,10 @@ def rollout_cases(cfg: Config, source: PolicySource, worlds: list, cases, *,
                      [w for w, _, _, _ in cases], [n for _, _, _, n in cases])
   t0 = time.time()
   xy, act, alive, outcome, steps, frames = rollout(
-      env, policy, starts, jax.random.PRNGKey(seed), max(limits), record=record, stop=stop)
-  raw = dict(xy=xy, act=act, alive=alive, outcome=outcome, steps=steps, frames=frames,
-             wall_s=time.time() - t0)
+      env, policy, starts, jax.random.PRNGKey(seed), max(limits), record=record, stop=stop,
+      cue=cue)
+  raw = dict(xy=xy, act=act, alive=alive, outcome=outcome, steps=steps,
+             cue=frames.pop("cue", None), frames=frames, wall_s=time.time() - t0)
   return raw, name
 
 
@@ -259,6 +270,7 @@ class Protocol(NamedTuple):
   lanes: Sequence[int] | None = None
   directions: Sequence[str] = DIRECTIONS
   seed: int = 0
+  past_end: bool = False  # on into the headland; the end-of-row detector's stops reported
 
 
 def run_protocol(cfg: Config, source: PolicySource, world, protocol: Protocol, *,
@@ -275,12 +287,20 @@ def run_protocol(cfg: Config, source: PolicySource, world, protocol: Protocol, *
   cases.add(0, [(l, d) for l in lanes for d in protocol.directions], noise_factor, runs)
   record = [cases.index((0, l, d, noise_factor)) for l, d in video
             if (0, l, d, noise_factor) in cases]
-  raw, name = rollout_cases(cfg, source, [world], cases, seed=protocol.seed, record=record)
+  detector = None
+  if protocol.past_end:
+    from mjxvine.evaluation.past_end import PAST_END_M, Detector
+    cfg = replace(cfg, env={"past_end_m": PAST_END_M})
+    detector = Detector.of(cfg, source.spec)
+  raw, name = rollout_cases(cfg, source, [world], cases, seed=protocol.seed, record=record,
+                            cue=detector.cue if detector else None)
   frames = raw["frames"]
   tracks = [_track(cfg, world, cases[i][1:3], frames["qpos"][:, j], frames["depth"][:, j],
                    raw["act"][:, i], int(raw["steps"][i]), OUTCOMES[int(raw["outcome"][i])])
             for j, i in enumerate(record)]
   doc = summarize(cfg, world, cases, range(len(cases)), raw)
+  if detector:
+    doc["row_end"] = detector.report(world, cases, raw)
   return {"policy": name, "noise": noise_factor, **doc}, tracks
 
 

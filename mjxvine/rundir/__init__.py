@@ -84,7 +84,8 @@ def resume_may_change(key: str) -> bool:
 
 # what a run writes: set aside together when it starts afresh in its directory
 RUN_OUTPUTS = ("checkpoints", "checkpoints-broken", "best.json", "best_members",
-               "eval_policies", "selection.json", "selected.npz", "eval", "metrics.jsonl",
+               "eval_policies", "selection.json", "selected.npz", "selected.sac.npz", "eval",
+               "metrics.jsonl",
                "tb", "learning_curve.png")
 
 

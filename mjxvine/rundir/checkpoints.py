@@ -314,6 +314,22 @@ def selected_policy(path: str | Path, which: str = "best",
   return next((npz for record, npz in options if record.is_file() and npz.is_file()), None)
 
 
+def restore_tree(item: Path) -> dict:
+  """The nested dict of numpy arrays of one orbax checkpoint item, from its own metadata (no
+  TrainState template); ValueError in one line for a damaged one."""
+  import jax
+  import orbax.checkpoint as ocp
+  ckpt = ocp.PyTreeCheckpointer()
+  try:
+    tree_meta = ckpt.metadata(item).item_metadata
+    tree_meta = getattr(tree_meta, "tree", tree_meta)
+    restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree_meta)
+    return ckpt.restore(item, args=ocp.args.PyTreeRestore(restore_args=restore_args))
+  except Exception as e:  # noqa: BLE001 - orbax fails in many ways on damaged files
+    raise ValueError(f"{item}: not a readable orbax checkpoint ({type(e).__name__}: "
+                     f"{first_line(e)})") from None
+
+
 def restore_actor_params(path: str | Path, which: str = "best",
                          member: int | None = None) -> tuple[Any, Path]:
   """(actor params, item dir) of the checkpoint that `checkpoint_item(path, which)` picks;
@@ -327,23 +343,12 @@ def restore_actor_params(path: str | Path, which: str = "best",
   `checkpoint_item`), ValueError (a damaged checkpoint, a member the run does not have)
   and KeyError (no `actor_params` entry).
   """
-  import jax
-  import orbax.checkpoint as ocp
-
   chosen = selected_policy(path, which, member)
   if chosen is not None:
     from mjxvine.deploy import read_policy_file
     return unflatten_params(read_policy_file(chosen)[0]), chosen
   item = checkpoint_item(path, which)
-  ckpt = ocp.PyTreeCheckpointer()
-  try:
-    tree_meta = ckpt.metadata(item).item_metadata
-    tree_meta = getattr(tree_meta, "tree", tree_meta)
-    restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree_meta)
-    tree = ckpt.restore(item, args=ocp.args.PyTreeRestore(restore_args=restore_args))
-  except Exception as e:  # noqa: BLE001 - orbax fails in many ways on damaged files
-    raise ValueError(f"{item}: not a readable orbax checkpoint ({type(e).__name__}: "
-                     f"{first_line(e)})") from None
+  tree = restore_tree(item)
   # the evaluated actor (`LearnerState.averaged_actor_params`; "policy_params" in
   # checkpoints of mjxvine 0.2.0); older checkpoints had only the learning actor
   actor = _find_key(tree, "averaged_actor_params")

@@ -26,6 +26,7 @@ from mjxvine.rundir.logs import Logger
 from mjxvine.networks import describe_conv_impl
 from mjxvine.training.distributed import local
 from mjxvine.training.programs import starts_params
+from mjxvine.agent_file import agent_arrays, agent_path, write_agent
 
 
 @dataclasses.dataclass
@@ -121,10 +122,12 @@ class FreshStartEvaluation:
     if self.member_best is not None:
       self.member_best.update(chunk_index, steps, rows, ts.learner.averaged_actor_params)
     if (self.cfg.train.keep_eval_policies or self.cfg.train.select_worlds) and self.primary:
-      actor = local(ts.learner.averaged_actor_params)
-      for k in choice.member_ids(self.seeds):  # each member's own
-        export_member(self.cfg, actor, k, choice.policy_file(self.run_dir, steps, k),
-                      chunk_index, steps)
+      learner = local(ts.learner)
+      for k in choice.member_ids(self.seeds):  # each member's own, with its agent file
+        path = choice.policy_file(self.run_dir, steps, k)
+        export_member(self.cfg, learner.averaged_actor_params, k, path, chunk_index, steps)
+        one = learner if k is None else jax.tree.map(lambda x, k=k: x[k], learner)
+        write_agent(agent_path(path), agent_arrays(one), meta_from_config(self.cfg))
     self.say(f"evaluated {2 * self.cfg.train.eval_starts} fresh starts in "
              f"{time.time() - t0:.0f} s: {eval_line(rows[0])}"
              + (" (new best)" if rows[0].get("best") else ""))

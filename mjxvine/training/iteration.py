@@ -105,7 +105,8 @@ def collect_step(cfg: Config, env, sac, ts: TrainState):
   key, k_act, k_explore, k_update = jax.random.split(ts.key, 4)
   obs = ts.env_state.obs
   policy_action = sac.act(ts.learner.actor_params, obs, k_act)
-  in_warmup = ts.env_steps < cfg.sac.warmup_steps
+  # a loaded agent (train.init_from) warms the replay up with its own driving
+  in_warmup = (ts.env_steps < cfg.sac.warmup_steps) if not cfg.train.init_from else False
   eps = schedules.epsilon(cfg.sac, ts.env_steps, ts.budget)
   action = schedules.explore_action(k_explore, policy_action, eps, env.action_low,
                                   env.action_high, in_warmup)
@@ -292,7 +293,7 @@ def compiled(cfg: Config, seeds: int, env):
 
 # The train.* keys that shape the compiled program; every other train.* key, and eval.*,
 # is read only by what runs around the compiled chunks (budget, files, evaluations, choice).
-PROGRAM_TRAIN_KEYS = ("iters_per_chunk", "devices", "conv_impl")
+PROGRAM_TRAIN_KEYS = ("iters_per_chunk", "devices", "conv_impl", "init_from")
 
 
 def compile_key(cfg: Config) -> Config:

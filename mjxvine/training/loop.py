@@ -46,6 +46,7 @@ from mjxvine.training import distributed, hooks, report
 from mjxvine.training.iteration import (NonFiniteError, compile_key, init_members, scan_chunks,
                                         sweep_members)
 from mjxvine.training.profile import Profile
+from mjxvine.training.warm_start import warm_start
 from mjxvine.training.programs import compiled_trainer, default_env, start_evaluator
 
 
@@ -56,8 +57,8 @@ def _say(quiet: bool) -> Callable:
 
 # The memory check (`check_memory`): a run may plan on this share of the memory free when
 # it starts (XLA's programs and scratch, the host's other work need the rest); per env, the
-# physics state and the working arrays of its step besides the frames (a measured vineyard
-# env state is about 25 KB with a 40 x 40 image: this leaves room for the step's own).
+# physics state and its step's working arrays besides the frames (a vineyard env state is
+# about 25 KB with a 40 x 40 image).
 MEMORY_MARGIN = 0.9
 ENV_BYTES = 256 << 10
 FRAMES_PER_ENV = 8  # the observation, the rendered and noisy frames, the step's copies
@@ -146,8 +147,8 @@ def check_memory(cfg: Config, env=None) -> None:
 
 def last_row(run_dir: Path) -> dict:
   """The last row of RUN_DIR/metrics.jsonl ({} if none): that of the last member."""
-  lines = (run_dir / "metrics.jsonl").read_text().splitlines() \
-      if (run_dir / "metrics.jsonl").is_file() else []
+  path = run_dir / "metrics.jsonl"
+  lines = path.read_text().splitlines() if path.is_file() else []
   return json.loads(lines[-1]) if lines else {}
 
 
@@ -252,15 +253,13 @@ def _set_up(cfg: Config, run_dir: Path, resume: bool, restart: bool, env,
       write_run_record(run_dir, cfg, conv_tower=tower)
   members = sweep_members(cfg)
   vineyard = env is None
-  if vineyard:
-    env = default_env(compile_key(cfg))
+  env = default_env(compile_key(cfg)) if vineyard else env
   sac, init_fn, chunk_fn = compiled_trainer(cfg, len(members), env)
   ts = init_members(cfg, init_fn, members)
   ckpt = Checkpoints(run_dir, cfg.train.save_replay, clean=primary)
   ckpt.primary = primary
-  total_chunks = math.ceil(cfg.train.total_env_steps /
-                           (cfg.env.num_envs * cfg.train.iters_per_chunk))
-  chunk_index = 0
+  steps_per_chunk = cfg.env.num_envs * cfg.train.iters_per_chunk
+  total_chunks, chunk_index = math.ceil(cfg.train.total_env_steps / steps_per_chunk), 0
   if primary and getattr(ckpt, "removed", None):
     tell(f"removed {len(ckpt.removed)} partial checkpoint(s) that an interrupted or "
          f"failed save left: {', '.join(p.name for p in ckpt.removed)}")
@@ -276,6 +275,8 @@ def _set_up(cfg: Config, run_dir: Path, resume: bool, restart: bool, env,
         return row
       tell(f"resumed {run_dir} at chunk {chunk_index} ({int(np.max(ts.env_steps))} env "
            "steps)")
+  if cfg.train.init_from and not chunk_index:  # a new run, or one with no checkpoint yet
+    ts = ts.replace(learner=warm_start(ts.learner, cfg.train.init_from, tell))
   # The logs follow the checkpoint: rows written after it (by the run that stopped)
   # are dropped, so that every chunk appears once and the curves run forward.
   restored_steps = int(np.max(ts.env_steps)) if chunk_index else 0
