@@ -360,7 +360,8 @@ def test_a_run_continues_from_a_kept_policy_and_its_agent_file(first_run, tmp_pa
   bare.write_bytes(kept.read_bytes())  # a policy file alone
   capsys.readouterr()
   with pytest.raises(SystemExit) as e:
-    train_mod.main(["--config", "experiments/smoke.yaml", *sum((["--set", o] for o in OVERRIDES), []),
+    train_mod.main(["--config", "experiments/smoke.yaml",
+                    *sum((["--set", o] for o in OVERRIDES), []),
                     "--init", str(bare), "--out", str(tmp_path / "refused")])
   assert e.value.code == 2 and not (tmp_path / "refused").exists()
   err = capsys.readouterr().err.strip()

@@ -170,9 +170,9 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
   float32, the end-of-row detector's memory (`row_memory_out` of the last frame; [0, inf]
   at a row's entrance). Outputs: action (B, A)
   float32 in the action box, as `NumpyPolicy.action`; row_ended (B,) bool and
-  row_memory_out (B, 2), the memory to feed back with the next frame, as `NumpyPolicy.step`
-  (files without control_dt, fovy_deg or v_prev: the action alone). The depth scale is folded into the
-  first conv kernel. preprocess=True puts `NumpyPolicy.clean_depth` in front: NaN, inf and
+  row_memory_out (B, 2), the memory to feed back with the next frame, as
+  `NumpyPolicy.step` (files without control_dt, fovy_deg or v_prev: the action alone).
+  The depth scale is folded into the first conv kernel. preprocess=True puts `NumpyPolicy.clean_depth` in front: NaN, inf and
   readings <= 0 (no return) -> `invalid_depth` (None: max_depth_m, what the simulator
   shows), then a clip to [0, max_depth]; otherwise inputs must be finite.
   """

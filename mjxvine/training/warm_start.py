@@ -2,9 +2,10 @@
 
 A run with `train.init_from` (a policy file with its agent file beside it, or the agent
 file: `mjxvine.agent_file`) starts its networks from it (`warm_start`), every array
-checked against the config's networks first (one line naming the first that differs). Its warm-up then drives
-with the loaded actor instead of uniform random actions (`schedules.explore_action`), so
-the replay fills with the agent's own driving before the first update.
+checked against the config's networks first (one line naming the first that differs).
+Its warm-up then drives with the loaded actor instead of uniform random actions
+(`training.iteration.collect_step`), so the replay fills with the agent's own driving
+before the first update.
 """
 
 from __future__ import annotations
