@@ -115,7 +115,9 @@ class VineyardNode(Node, DriveLogic):
         f"{layout['fovy_deg']} deg{' (cropped from camera_info)' if self.fov_crop else ''}, "
         f"invalid depth -> {policy.invalid_depth:g} m, {1 / dt:.0f} Hz, inputs older than "
         f"{self.timeout:g} s refused"
-        + (f", v <= {self.max_speed:g} m/s" if self.max_speed >= 0 else ""))
+        + (f", v <= {self.max_speed:g} m/s" if self.max_speed >= 0 else "")
+        + (", stops at the end of the row" if self.stop_at_row_end else
+           ", no end-of-row stop"))
 
   def now(self) -> float:
     """The node's clock (s): header stamps are judged against it (sim time in a sim)."""

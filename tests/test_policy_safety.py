@@ -516,6 +516,19 @@ def test_the_end_of_the_row_stops_the_robot_until_the_next_row(policy):
     assert d.reason is None and d.v > 0.05 and not d.row_end
 
 
+def test_a_policy_file_without_the_detector_still_drives(tmp_path):
+  """A file exported before the end-of-row detector (no fovy_deg): the logic drives
+  without the stop, as before; NumpyPolicy.step says why it cannot."""
+  arrays, meta = _model()
+  meta.pop("fovy_deg")
+  old = NumpyPolicy.load(_save(tmp_path / "old.npz", arrays, meta), preprocess=True)
+  assert not old.has_row_end
+  with pytest.raises(PolicyFormatError, match="no end-of-row detector"):
+    old.step(*_view())
+  logic = _driving(old)
+  assert not logic.stop_at_row_end and not logic.decide(NOW).row_end
+
+
 def test_imu_without_orientation_is_no_yaw(policy):
   """REP 145: orientation_covariance[0] == -1 means no orientation; a zero or non-unit
   quaternion has none either. Never yaw 0: a stop, with the reason."""

@@ -190,7 +190,8 @@ class DriveLogic:
   fov_crop: crop images to the policy's field of view from CameraInfo, and refuse images
   of another size than the CameraInfo's; until a valid one arrives, stop.
   stop_at_row_end: stop for good when the policy's end-of-row detector fires
-  (`NumpyPolicy.step`) until `zero_heading` at the next row's entrance.
+  (`NumpyPolicy.step`) until `zero_heading` at the next row's entrance; off for a policy
+  file without the detector (`NumpyPolicy.has_row_end`: files exported before it).
   """
 
   def __init__(self, policy, timeout_s: float = 0.5, max_speed: float = -1.0,
@@ -210,7 +211,8 @@ class DriveLogic:
     self.depth_error = self.imu_error = self.camera_error = None  # why the last was refused
     self.imu_yaw = self.yaw_ref = None  # raw IMU yaw and the reference it is measured from
     self.v_prev = self.w_prev = 0.0
-    self.stop_at_row_end = bool(stop_at_row_end)
+    self.stop_at_row_end = bool(stop_at_row_end) and bool(getattr(policy, "has_row_end",
+                                                                  False))
     self.row_ended = False  # the detector fired in this row: stopped until zero_heading
 
   # ----------------------------------------------------------------- messages in

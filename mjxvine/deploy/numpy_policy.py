@@ -1077,8 +1077,7 @@ class NumpyPolicy:
     if act.ndim != 1:
       raise PolicyInputError("step takes one robot's frame (depth (H, W), state (S,)); a "
                              "batch: action, and row_cue / row_update per robot")
-    if self.control_dt is None or self.layout["fovy_deg"] is None or \
-        "v_prev" not in self.state_layout:
+    if not self.has_row_end:
       raise PolicyFormatError("this policy file lacks control_dt, fovy_deg or a v_prev "
                               "state entry: no end-of-row detector (export it again)")
     pre = self.preprocess if preprocess is None else preprocess
@@ -1089,6 +1088,13 @@ class NumpyPolicy:
                                         s[0, self.state_layout.index("v_prev")],
                                         self.control_dt, self.row_end)
     return act, bool(ended)
+
+  @property
+  def has_row_end(self) -> bool:
+    """Whether the file gives what the end-of-row detector needs (`step`): the control
+    step, the vertical field of view and a v_prev state entry."""
+    return (self.control_dt is not None and self.layout["fovy_deg"] is not None
+            and "v_prev" in self.state_layout)
 
   def reset_row(self) -> None:
     """Forgets the last row: the end-of-row detector starts afresh (at a row's entrance)."""

@@ -15,8 +15,7 @@ import numpy as np
 
 from mjxvine import atomic
 from mjxvine.deploy.numpy_policy import (META_KEY, MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN,
-                                         NumpyPolicy, RowEnd, band_rows, policy_layout,
-                                         read_policy_file)
+                                         NumpyPolicy, RowEnd, band_rows, read_policy_file)
 
 ONNX_OPSET = 17
 ONNX_META_KEY = "mjxvine_meta"
@@ -184,12 +183,10 @@ def onnx_model(arrays: dict[str, np.ndarray], meta: dict, preprocess: bool = Fal
   state_size = arrays["dense0/kernel"].shape[0] - arrays["tower/conv0/kernel"].shape[-1]
   g = _Graph()
   x = _clean_depth(g, "depth", meta, invalid_depth) if preprocess else "depth"
-  layout = policy_layout(meta)
-  names = NumpyPolicy(arrays, meta).state_layout
-  row_end = (layout["control_dt"] is not None and layout["fovy_deg"] is not None
-             and "v_prev" in names)
+  policy = NumpyPolicy(arrays, meta)
+  row_end = policy.has_row_end
   if row_end:
-    _row_end(g, x, "state", meta, names)
+    _row_end(g, x, "state", meta, policy.state_layout)
   # (B, H, W, 1) -> (B, 1, H, W): a reshape, since there is one channel.
   x = g.node("Reshape", [x, g.const("nchw_shape", np.array([-1, 1, h, w], np.int64))], "nchw")
   mirror = bool(meta.get("mirror_average", False))
