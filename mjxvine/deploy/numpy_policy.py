@@ -994,6 +994,12 @@ class NumpyPolicy:
     box. preprocess, wrap_yaw: None is the policy's own (`load`). PolicyInputError for
     inputs outside the module's input contract, PolicyError for a network output that is
     not finite (an overflow); no other error (a MemoryError becomes a PolicyError too)."""
+    return self._checked_action(depth, state, preprocess, wrap_yaw)[0]
+
+  def _checked_action(self, depth, state, preprocess: bool | None,
+                      wrap_yaw: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(`action`'s array, the checked depth (B, H, W, 1) m and state (B, S) it acted on),
+    with `action`'s errors."""
     try:
       return self._action(depth, state, preprocess, wrap_yaw)
     except PolicyError:
@@ -1002,7 +1008,7 @@ class NumpyPolicy:
       raise PolicyError(f"no action ({type(e).__name__}: {_first_line(e)})") from e
 
   def _action(self, depth, state, preprocess: bool | None,
-              wrap_yaw: bool | None) -> np.ndarray:
+              wrap_yaw: bool | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     pre = self.preprocess if preprocess is None else preprocess
     wrap = self.wrap_yaw if wrap_yaw is None else wrap_yaw
     x, s, batched = self._check(depth, state, pre, wrap)
@@ -1022,7 +1028,7 @@ class NumpyPolicy:
         act[i:i + step] = self._actor(xi, si)
     # float32 rounding, and the mirror average of a box not symmetric in w, may leave it
     np.clip(act, self.low, self.high, out=act)
-    return act if batched else act[0]
+    return (act if batched else act[0]), x, s
 
   def _actor(self, x: np.ndarray, s: np.ndarray) -> np.ndarray:
     """The actor's action (B, A) for checked inputs: depth (B, H, W, 1), state (B, S);
@@ -1073,15 +1079,13 @@ class NumpyPolicy:
     call: `reset_row()` at each row's entrance. Errors as `action`'s; PolicyInputError
     for a batch, PolicyFormatError for a file without the control step or vertical field
     of view the detector needs."""
-    act = self.action(depth, state, preprocess, wrap_yaw)
-    if act.ndim != 1:
-      raise PolicyInputError("step takes one robot's frame (depth (H, W), state (S,)); a "
-                             "batch: action, and row_cue / row_update per robot")
     if not self.has_row_end:
       raise PolicyFormatError("this policy file lacks control_dt, fovy_deg or a v_prev "
                               "state entry: no end-of-row detector (export it again)")
-    pre = self.preprocess if preprocess is None else preprocess
-    x, s, _ = self._check(depth, state, pre, False)
+    act, x, s = self._checked_action(depth, state, preprocess, wrap_yaw)
+    if act.ndim != 1:
+      raise PolicyInputError("step takes one robot's frame (depth (H, W), state (S,)); a "
+                             "batch: action, and row_cue / row_update per robot")
     rows = band_rows(self.height, self.layout["fovy_deg"], self.row_end.min_elevation_deg)
     share, depth_m = row_cue(x[0, :, :, 0], rows, self.row_end)
     self.row_memory, ended = row_update(self.row_memory, share, depth_m,

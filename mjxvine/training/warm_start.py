@@ -95,8 +95,8 @@ def warm_start(learner: Any, spec: str, say=lambda *a: None) -> Any:
   for prefix, field in PARTS.items():
     tree = unflatten_params({k[len(prefix) + 1:]: v for k, v in arrays.items()
                              if k.startswith(prefix + "/")})
-    old = getattr(learner, field)
-    parts[field] = jax.tree.map(put, old, _like(old, tree))
+    # the file's arrays, checked against these trees' shapes: the same dicts of dicts
+    parts[field] = jax.tree.map(put, getattr(learner, field), tree)
   # its own buffers: the trainer donates both trees to the compiled step
   parts["actor_params"] = jax.tree.map(jp.copy, parts["averaged_actor_params"])
   say(f"networks and temperature from {resolve(spec)}")
@@ -105,15 +105,3 @@ def warm_start(learner: Any, spec: str, say=lambda *a: None) -> Any:
 
 def _stacked(learner: Any) -> bool:
   return np.ndim(learner.log_alpha) > 0
-
-
-def _like(template: Any, tree: dict) -> Any:
-  """`tree` (nested dicts) in the structure of `template` (flax's FrozenDict or dict)."""
-  import jax
-  values = []
-  for key_path, _ in jax.tree_util.tree_flatten_with_path(template)[0]:
-    node = tree
-    for k in key_path:
-      node = node[getattr(k, "key", getattr(k, "name", k))]
-    values.append(node)
-  return jax.tree.unflatten(jax.tree.structure(template), values)
