@@ -302,6 +302,12 @@ class SACConfig:
                             "and exported is a Polyak average of the learning actor, moved "
                             "by this rate every gradient step (0: the learning actor "
                             "itself); acting during training always uses the learning actor")
+  anchor_weight: float = _f(0.0, 0.0, 1e4, doc="with train.init_from: the actor's loss "
+                            "adds this times the mean squared distance between its "
+                            "test-time action and the loaded actor's on the same replay "
+                            "states (actions scaled to [-1, 1]), so that fine-tuning keeps "
+                            "the loaded driving where the new experience does not pay to "
+                            "change it (0: no pull)")
   mirror_augment: bool = _f(False, doc="every sampled transition is mirrored left-right "
                             "with probability 1/2 (depth columns reversed, turn rate and yaw "
                             "negated: the task is symmetric), so that both networks learn "
@@ -559,6 +565,9 @@ def _check_cross_fields(cfg: Config) -> None:
   if cfg.train.video and cfg.eval.runs_after_train < 1:
     raise ConfigError("train.video = true: films the closing test-world runs, which need "
                       "eval.runs_after_train >= 1 (got 0)")
+  if cfg.sac.anchor_weight > 0 and not cfg.train.init_from:
+    raise ConfigError(f"sac.anchor_weight = {cfg.sac.anchor_weight}: pulls the actor "
+                      "towards a loaded one, which needs train.init_from (--init)")
   rows = cfg.sac.buffer_size // cfg.env.num_envs
   if cfg.sac.n_step >= rows:
     raise ConfigError(f"sac.n_step = {cfg.sac.n_step}: must be below the steps per env "

@@ -40,6 +40,8 @@ class LearnerState(flax.struct.PyTreeNode):
   `averaged_actor_params` is the Polyak average of `actor_params` at rate
   `sac.actor_ema_tau` (the learning actor itself when 0): the actor that is evaluated,
   kept as best and exported. Acting during training uses `actor_params`.
+  `anchor_actor_params`: the loaded actor that `sac.anchor_weight` pulls towards (a
+  frozen copy; None where the weight is 0).
   """
   actor_params: Params
   critic_params: Params
@@ -50,6 +52,7 @@ class LearnerState(flax.struct.PyTreeNode):
   log_alpha: jax.Array  # () float32
   step: jax.Array  # () int32, gradient steps taken
   averaged_actor_params: Params
+  anchor_actor_params: Params = None
 
 
 # ----------------------------------------------------------------------------------------
@@ -93,13 +96,22 @@ def critic_loss(critic_params: Params, target_critic_params: Params, actor_param
 
 
 def actor_loss(actor_params: Params, critic_params: Params, alpha: jax.Array, batch: Transition,
-               key: jax.Array, nets: nw.SACNetworks) -> tuple[jax.Array, jax.Array]:
-  """mean_b (alpha * log pi(a|s) - min_i Q_i(s, a)), a ~ pi(.|s) reparameterised.
-  Returns (loss, log_prob (B,))."""
+               key: jax.Array, nets: nw.SACNetworks, anchor_params: Params = None,
+               anchor_weight: float = 0.0) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+  """mean_b (alpha * log pi(a|s) - min_i Q_i(s, a)), a ~ pi(.|s) reparameterised, plus
+  `anchor_weight` * mean_b ||tanh(mu(s)) - tanh(mu_0(s))||^2 (`anchor_gap`: the test-time
+  actions of this actor and of the frozen `anchor_params`, each dimension scaled to
+  [-1, 1]) where the weight is > 0. Returns (loss, (log_prob (B,), anchor_gap ()))."""
   mean, log_std = nets.actor.apply({"params": actor_params}, batch.obs)
   a, logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
   q = nets.critic.apply({"params": critic_params}, batch.obs, a)
-  return jnp.mean(alpha * logp - jnp.min(q, axis=0)), logp
+  loss = jnp.mean(alpha * logp - jnp.min(q, axis=0))
+  gap = jnp.zeros(())
+  if anchor_weight > 0:
+    anchor_mean, _ = nets.actor.apply({"params": anchor_params}, batch.obs)
+    gap = jnp.mean(jnp.sum((jnp.tanh(mean) - jnp.tanh(anchor_mean)) ** 2, axis=-1))
+    loss = loss + anchor_weight * gap
+  return loss, (logp, gap)
 
 
 def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array, target_entropy: float) -> jax.Array:
@@ -186,7 +198,9 @@ def init_state(nets: nw.SACNetworks, cfg: SACConfig, key: jax.Array, obs: Obs) -
       target_critic_params=jax.tree.map(jnp.copy, critic_params),
       actor_opt_state=opt.init(actor_params), critic_opt_state=opt.init(critic_params),
       alpha_opt_state=temperature_optimizer(cfg).init(log_alpha), log_alpha=log_alpha,
-      step=jnp.zeros((), jnp.int32), averaged_actor_params=jax.tree.map(jnp.copy, actor_params))
+      step=jnp.zeros((), jnp.int32), averaged_actor_params=jax.tree.map(jnp.copy, actor_params),
+      anchor_actor_params=(jax.tree.map(jnp.copy, actor_params) if cfg.anchor_weight > 0
+                           else None))
 
 
 def temperature_optimizer(cfg: SACConfig) -> optax.GradientTransformation:
@@ -218,8 +232,9 @@ def gradient_step(nets: nw.SACNetworks, cfg: SACConfig, state: LearnerState, bat
   c_updates, critic_opt_state = opt.update(c_grads, state.critic_opt_state)
   critic_params = optax.apply_updates(state.critic_params, _as_recorded(c_updates, state.step))
 
-  (a_loss, logp), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(
-      state.actor_params, critic_params, alpha, batch, k_actor, nets)
+  (a_loss, (logp, anchor_gap)), a_grads = jax.value_and_grad(actor_loss, has_aux=True)(
+      state.actor_params, critic_params, alpha, batch, k_actor, nets,
+      state.anchor_actor_params, cfg.anchor_weight)
   a_updates, actor_opt_state = opt.update(a_grads, state.actor_opt_state)
   actor_params = optax.apply_updates(state.actor_params, _as_recorded(a_updates, state.step))
 
@@ -237,12 +252,14 @@ def gradient_step(nets: nw.SACNetworks, cfg: SACConfig, state: LearnerState, bat
       target_critic_params=polyak(state.target_critic_params, critic_params, tau),
       actor_opt_state=actor_opt_state, critic_opt_state=critic_opt_state,
       alpha_opt_state=alpha_opt_state, log_alpha=log_alpha, step=state.step + 1,
-      averaged_actor_params=averaged)
+      averaged_actor_params=averaged, anchor_actor_params=state.anchor_actor_params)
   metrics = {
       "critic_loss": c_loss, "actor_loss": a_loss, "alpha_loss": al_loss,
       "alpha": jnp.exp(log_alpha), "q_mean": jnp.mean(c_aux["q"]),
       "target_mean": jnp.mean(c_aux["target"]), "entropy": -jnp.mean(logp),
   }
+  if cfg.anchor_weight > 0:
+    metrics["anchor_gap"] = anchor_gap
   return new_state, metrics
 
 

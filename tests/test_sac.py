@@ -101,12 +101,37 @@ def test_critic_loss_matches_numpy(tiny):
 def test_actor_loss_matches_numpy(tiny):
   nets, actor, critic, _, batch, fns = tiny
   key = jax.random.PRNGKey(11)
-  loss, logp = fns["actor_loss"](actor, critic, batch, key)
+  loss, (logp, _) = fns["actor_loss"](actor, critic, batch, key)
   a, c, b = _np(actor), _np(critic), _np(batch._replace(weight=None))
   act, np_logp = _np_actor_sample(a, b.obs, key)
   np.testing.assert_allclose(np.asarray(logp), np_logp, rtol=1e-4, atol=1e-4)
   expected = np.mean(ALPHA * np_logp - _np_q(c, b.obs, act).min(0))
   np.testing.assert_allclose(float(loss), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_anchor_adds_the_squared_gap_to_the_loaded_actors_action(tiny):
+  """sac.anchor_weight: the actor's loss grows by w * mean_b ||tanh(mu) - tanh(mu_0)||^2,
+  and its gradient pulls the actor's test-time action towards the anchor's."""
+  nets, actor, critic, _, batch, _ = tiny
+  key, w = jax.random.PRNGKey(11), 3.0
+  anchor = jax.tree.map(lambda x: x + 0.05 * jnp.sign(x), actor)
+  plain, _ = sac.actor_loss(actor, critic, ALPHA, batch, key, nets)
+  loss, (_, gap) = sac.actor_loss(actor, critic, ALPHA, batch, key, nets, anchor, w)
+  mean = nets.actor.apply({"params": actor}, batch.obs)[0]
+  mean0 = nets.actor.apply({"params": anchor}, batch.obs)[0]
+  expected_gap = np.mean(np.sum((np.tanh(mean) - np.tanh(mean0)) ** 2, -1))
+  assert expected_gap > 1e-4
+  np.testing.assert_allclose(float(gap), expected_gap, rtol=1e-4)
+  np.testing.assert_allclose(float(loss), float(plain) + w * expected_gap, rtol=1e-4, atol=1e-6)
+  # the anchor itself: no pull
+  _, (_, none) = sac.actor_loss(anchor, critic, ALPHA, batch, key, nets, anchor, w)
+  assert float(none) == 0.0
+  # a step down the pull alone shortens the gap
+  def pull(params):
+    return sac.actor_loss(params, critic, ALPHA, batch, key, nets, anchor, w)[1][1]
+  grads = jax.grad(pull)(actor)
+  moved = jax.tree.map(lambda p, g: p - 0.01 * g, actor, grads)
+  assert float(pull(moved)) < float(gap)
 
 
 def test_alpha_loss_gradient_direction():

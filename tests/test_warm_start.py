@@ -1,6 +1,7 @@
 """The agent file (`mjxvine.agent_file`) and `train --init` (`mjxvine.training.warm_start`):
 names, reading, the shipped agent's actions reproduced, refusals in one line."""
 
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -46,7 +47,8 @@ def test_the_shipped_agent_file_reproduces_the_shipped_actions():
   h, w = cfg.camera.height, cfg.camera.width
   obs = {"depth": jnp.zeros((1, h, w, 1)), "state": jnp.zeros((1, 3))}
   from mjxvine import sac as sac_lib
-  learner = sac_lib.init_state(nets, cfg.sac, jax.random.PRNGKey(7), obs)
+  anchored = dataclasses.replace(cfg.sac, anchor_weight=1.0)  # keeps the loaded actor too
+  learner = sac_lib.init_state(nets, anchored, jax.random.PRNGKey(7), obs)
   learner = warm_start(learner, str(SHIPPED))
   arrays, meta = read_policy_file(SHIPPED)
   plain = NumpyPolicy(arrays, {**meta, "mirror_average": False})  # one pass, as the actor
@@ -54,12 +56,21 @@ def test_the_shipped_agent_file_reproduces_the_shipped_actions():
   depth = rng.uniform(0.3, 5.0, (8, h, w, 1)).astype(np.float32)
   depth[:, : h // 3] = 5.0
   state = rng.uniform([0.0, -1.0, -3.0], [0.5, 1.0, 3.0], (8, 3)).astype(np.float32)
-  for params in (learner.actor_params, learner.averaged_actor_params):
+  for params in (learner.actor_params, learner.averaged_actor_params,
+                 learner.anchor_actor_params):
     mean = nets.actor.apply({"params": params}, {"depth": depth, "state": state})[0]
     got = np.asarray(nw.deterministic_action(mean, nets.action_low, nets.action_high))
     np.testing.assert_allclose(got, plain.action(depth, state), atol=1e-5)
   shapes = network_shapes(cfg)
   assert set(load_agent(str(SHIPPED), shapes)) == set(shapes)
+
+
+def test_the_anchor_needs_a_loaded_agent(tmp_path):
+  with pytest.raises(ConfigError, match="sac.anchor_weight = 0.5: .* train.init_from"):
+    load_config("experiments/smoke.yaml", ["sac.anchor_weight=0.5"])
+  cfg = load_config("experiments/smoke.yaml", ["sac.anchor_weight=0.5",
+                                               f"train.init_from={SHIPPED}"])
+  assert cfg.sac.anchor_weight == 0.5
 
 
 def test_an_agent_of_other_networks_is_refused_in_one_line(tmp_path):

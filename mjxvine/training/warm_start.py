@@ -78,8 +78,8 @@ def load_agent(spec: str, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
 
 def warm_start(learner: Any, spec: str, say=lambda *a: None) -> Any:
   """`learner` (a `sac.LearnerState` of one member, or several stacked) with its networks
-  and temperature from the agent file of `spec` (`load_agent`): the actor and its average
-  both become the file's actor, in every member. `say` tells where they came from."""
+  and temperature from the agent file of `spec` (`load_agent`): the actor, its average
+  and the anchor (`sac.anchor_weight`) all become the file's actor, in every member. `say` tells where they came from."""
   import jax
   import jax.numpy as jp
   one = jax.tree.map(lambda x: x[0], learner) if _stacked(learner) else learner
@@ -97,8 +97,10 @@ def warm_start(learner: Any, spec: str, say=lambda *a: None) -> Any:
                              if k.startswith(prefix + "/")})
     # the file's arrays, checked against these trees' shapes: the same dicts of dicts
     parts[field] = jax.tree.map(put, getattr(learner, field), tree)
-  # its own buffers: the trainer donates both trees to the compiled step
+  # its own buffers: the trainer donates these trees to the compiled step
   parts["actor_params"] = jax.tree.map(jp.copy, parts["averaged_actor_params"])
+  if learner.anchor_actor_params is not None:  # sac.anchor_weight: pulled towards the file's
+    parts["anchor_actor_params"] = jax.tree.map(jp.copy, parts["averaged_actor_params"])
   say(f"networks and temperature from {resolve(spec)}")
   return learner.replace(log_alpha=put(learner.log_alpha, arrays["log_alpha"]), **parts)
 
