@@ -175,6 +175,41 @@ def test_min_range_and_quantisation(images):
   assert np.abs(quanta - np.round(quanta)).max() < 1e-3
 
 
+# ------------------------------------------------------------------ the per-pixel draws
+
+def test_pixel_words_are_uniform_and_independent():
+  """The hash's words: 16-bit halves uniform (mean, variance), neighbours and the
+  streams of two keys uncorrelated; the near-normal has mean 0, std 1 and no value
+  beyond 3.45."""
+  n = 1 << 16
+  words = jax.jit(lambda k: sensor._pixel_words(k, (2, n)))
+  a, b = words(jax.random.key(0)), words(jax.random.key(1))
+  tol = 4 / math.sqrt(n)
+  for high in (True, False):
+    u = np.asarray(sensor._uniform16(a, high))
+    assert 0 < u.min() and u.max() < 1
+    assert abs(u.mean() - 0.5) < tol * math.sqrt(1 / 12)
+    assert abs(u.var() - 1 / 12) < tol * math.sqrt(1 / 180)  # the sample variance's std
+    assert abs(np.corrcoef(u[0, :-1], u[0, 1:])[0, 1]) < tol
+    assert abs(np.corrcoef(u[0], u[1])[0, 1]) < tol
+    other = np.asarray(sensor._uniform16(b, high))
+    assert abs(np.corrcoef(u[0], other[0])[0, 1]) < tol
+  x = np.asarray(sensor._near_normal(a)).ravel()
+  assert abs(x.mean()) < 4 / math.sqrt(x.size) and abs(x.std() - 1) < 4 / math.sqrt(2 * x.size)
+  assert np.abs(x).max() <= 3.4506
+  # beyond 2 std: the normal 4.6 %, the sum of four bytes 4.3 %
+  assert abs((np.abs(x) > 2).mean() - 0.0426) < 0.0022  # 4 sigma; a normal: 0.0029 off
+
+
+def test_the_patch_threshold_table_gives_the_rate():
+  from statistics import NormalDist
+  z = np.linspace(0.0, 6.0, 2001, dtype=np.float32)  # past max depth: the far rate
+  for rates, tol in (((0.02, 0.1), 1e-5), ((0.05, 0.45), 1e-5), ((0.0, 0.45), 3e-3)):
+    got = np.asarray(sensor._patch_threshold(rates, jp.asarray(z), MAX))
+    rate = np.array([NormalDist().cdf(float(t)) for t in got])
+    np.testing.assert_allclose(rate, [linear_rate(rates, float(d)) for d in z], atol=tol)
+
+
 # ------------------------------------------------------------------ flying pixels
 
 def test_flying_pixels_lie_between_the_sides_of_an_edge(images):

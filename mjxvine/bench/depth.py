@@ -1,6 +1,7 @@
 """`bench depth`: images/s of `depth.render_depth`, vmapped over a batch of robot poses in
-one vineyard, per image size and batch size, beside the naive baseline (`mjx.ray` vmapped
-over every pixel), and the agreement of one image with MuJoCo's C ray caster
+one vineyard, per image size and batch size, with and without the config's sensor model
+(`sensor.observe`), beside the naive baseline (`mjx.ray` vmapped over every pixel), and
+the agreement of one image with MuJoCo's C ray caster
 (`mujoco.mj_multiRay`). Each row: wall-clock images/s, ms per image, CPU ms per image
 (all threads), compile seconds."""
 
@@ -86,12 +87,15 @@ def _bench_size(args: argparse.Namespace, c: config_lib.Config,
                      min_reps=2)
     base_ips = bb / base["call_s"]
     rows.append(_row(size, NAIVE, bb, base))
+  observed = vmapped(partial(_observed, cam, c))
+  sensed = f"render_depth + sensor.observe ({c.sensor.preset})"
   for b in batches:
     r = time_call(render, *batch(b), min_time=args.min_time)
     row = _row(size, "depth.render_depth", b, r)
     if base_ips is not None and b == args.baseline_batch:
       row["vs_naive"] = row["images_per_s"] / base_ips
     rows.append(row)
+    rows.append(_row(size, sensed, b, time_call(observed, *batch(b), min_time=args.min_time)))
     if b > args.chunk > 0:
       r = time_call(vmapped(partial(depth.render_depth, cam), args.chunk), *batch(b),
                     min_time=args.min_time)
@@ -110,6 +114,17 @@ def _bench_size(args: argparse.Namespace, c: config_lib.Config,
     if row["impl"] != NAIVE:
       row["agree_1cm"] = agree
   return rows
+
+
+def _observed(cam, c: config_lib.Config, m, d) -> jax.Array:
+  """The image the policy sees: `render_depth` through the config's sensor model
+  (`sensor.observe`, noise factor camera.noise_factor), in one program as in the env
+  step; its key folded from the pose, so that XLA cannot fold the draws into constants."""
+  from mjxvine import depth, sensor  # pylint: disable=import-outside-toplevel
+  key = jax.random.fold_in(jax.random.PRNGKey(0),
+                           jax.lax.bitcast_convert_type(d.cam_xpos[cam.cam_id, 0], jp.int32))
+  return sensor.observe(depth.render_depth(cam, m, d), key, c.camera, c.sensor,
+                        c.camera.noise_factor)
 
 
 def _row(size: str, impl: str, b: int, r: dict) -> dict:
