@@ -768,6 +768,8 @@ class NumpyPolicy:
     self._state_bounds()
     self.row_end = layout["row_end"]  # the end-of-row detector (`step`)
     self.row_memory = row_start()
+    fovy = layout["fovy_deg"]  # the detector's band of image rows, once (0 without one)
+    self._row_band = band_rows(self.height, fovy, self.row_end.min_elevation_deg) if fovy else 0
 
   def _workspace_bytes(self, batch: int) -> int:
     """Bytes of the conv buffers (`_ConvWork`: cols and out) for `batch` images."""
@@ -1086,8 +1088,7 @@ class NumpyPolicy:
     if act.ndim != 1:
       raise PolicyInputError("step takes one robot's frame (depth (H, W), state (S,)); a "
                              "batch: action, and row_cue / row_update per robot")
-    rows = band_rows(self.height, self.layout["fovy_deg"], self.row_end.min_elevation_deg)
-    share, depth_m = row_cue(x[0, :, :, 0], rows, self.row_end)
+    share, depth_m = row_cue(x[0, :, :, 0], self._row_band, self.row_end)
     self.row_memory, ended = row_update(self.row_memory, share, depth_m,
                                         s[0, self.state_layout.index("v_prev")],
                                         self.control_dt, self.row_end)
