@@ -251,7 +251,7 @@ class EnvConfig:
                           doc="the state's yaw: relative to the heading at the episode start "
                           "(a robot zeroing its IMU at the row entrance; this project's "
                           "default) or the world yaw (the paper's input)")
-  heading_reward: str = _f("paper", choices=("paper", "speed_weighted", "lane"),
+  heading_reward: str = _f("paper", choices=("paper", "speed_weighted"),
                            doc="r_h as in the paper, or scaled by the forward speed / v_max "
                            "(no heading reward for standing still facing the EoR)")
   train_noise_factor: tuple[float, float] = _f(

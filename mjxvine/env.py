@@ -95,7 +95,6 @@ class VineyardEnv(Env):
     # metres of x between centerline samples (at most CENTERLINE_STEP_M in file worlds)
     self.sample_m = (self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
                      if self.lanes.uniform else CENTERLINE_STEP_M)
-    self._lane_ahead = int(np.ceil(2.0 / self.sample_m))  # heading_reward "lane": 2 m
     self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds))
     self.substeps = int(round(cfg.env.control_dt / cfg.env.physics_dt))
     low, high = action_box(cfg)
@@ -382,7 +381,7 @@ class VineyardEnv(Env):
 
     xy, yaw = d.qpos[:2], _yaw(d.qpos[3:7])
     line, k, _, width = self.lanes.lane(pose["world"], pose["lane"])
-    i_near, tangent, lateral, _ = lane_frame(line, xy, pose["direction"], k)
+    _, tangent, lateral, _ = lane_frame(line, xy, pose["direction"], k)
     dist = jp.linalg.norm(xy - pose["eor"])
     to_eor = pose["eor"] - xy
     phi = _wrap(jp.arctan2(to_eor[1], to_eor[0]) - yaw)
@@ -406,11 +405,8 @@ class VineyardEnv(Env):
     outcome = jp.select(
         [exploded, success, collision, left_lane, reversed_, timeout],
         [PHYSICS, SUCCESS, COLLISION, LEFT_LANE, REVERSED, TIMEOUT], RUNNING).astype(jp.int32)
-    if env.heading_reward == "lane":  # towards the centreline 2 m ahead, not the EoR
-      rel = point_ahead(line, i_near, pose["direction"], self._lane_ahead, k) - xy
-      phi = _wrap(jp.arctan2(rel[1], rel[0]) - yaw)
     r_heading = 1.0 - 2.0 * jp.sqrt(jp.abs(phi / jp.pi))
-    if env.heading_reward in ("speed_weighted", "lane"):
+    if env.heading_reward == "speed_weighted":
       forward_speed = d.qvel[:2] @ jp.array([jp.cos(yaw), jp.sin(yaw)])
       r_heading = r_heading * jp.clip(forward_speed / env.v_max, 0.0, 1.0)
     # The named terms (a physics reset earns nothing); the reward is their sum.
