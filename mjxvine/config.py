@@ -322,8 +322,6 @@ class SACConfig:
   critic_layer_norm: bool = _f(False, doc="LayerNorm before each hidden ReLU of the "
                                "critics (not the paper's; the actor, and so the exported "
                                "policy, unchanged)")
-  critic_dropout: float = _f(0.0, 0.0, 0.5, doc="dropout rate before each LayerNorm of "
-                             "the critics in every gradient step (DroQ)")
   reward_scale: float = _f(1.0, 1e-6, 1e6, doc="rewards are multiplied by this before the "
                            "replay (1: the paper; returns are logged unscaled)")
 

@@ -143,7 +143,6 @@ class Critic(nn.Module):
   depth_scale: float = 1.0
   conv_impl: str = "xla"
   layer_norm: bool = False  # LayerNorm before each hidden ReLU (`sac.critic_layer_norm`)
-  dropout: float = 0.0  # before each LayerNorm, where a "dropout" rng is given (DroQ)
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
@@ -151,8 +150,6 @@ class Critic(nn.Module):
                      extra=(action,))
     for i, h in enumerate(self.hidden):
       x = nn.Dense(h, name=f"dense{i}")(x)
-      if self.dropout > 0:
-        x = nn.Dropout(self.dropout, deterministic=not self.has_rng("dropout"))(x)
       if self.layer_norm:
         x = nn.LayerNorm(name=f"norm{i}")(x)
       x = nn.relu(x)
@@ -171,13 +168,12 @@ class TwinCritic(nn.Module):
   num: int = 2
   conv_impl: str = "xla"
   layer_norm: bool = False
-  dropout: float = 0.0
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
     return jnp.stack([
         Critic(self.hidden, self.conv_features, self.depth_scale, self.conv_impl,
-               self.layer_norm, self.dropout, name=f"critic{i}")(obs, action)
+               self.layer_norm, name=f"critic{i}")(obs, action)
         for i in range(self.num)])
 
 
@@ -191,7 +187,7 @@ class SACNetworks(NamedTuple):
 
 def make_networks(action_low: Sequence[float], action_high: Sequence[float], hidden: int = 256,
                   conv_features: int = 32, depth_scale: float = 1.0, conv_impl: str = "xla",
-                  critic_layer_norm: bool = False, critic_dropout: float = 0.0) -> SACNetworks:
+                  critic_layer_norm: bool = False) -> SACNetworks:
   """Builds the actor and twin critic for an action box [action_low, action_high].
 
   `depth_scale` multiplies the depth (metres) before the first conv; the paper's
@@ -207,7 +203,7 @@ def make_networks(action_low: Sequence[float], action_high: Sequence[float], hid
   hs = (hidden, hidden)
   actor = Actor(int(low.shape[0]), hs, conv_features, depth_scale, conv_impl)
   critic = TwinCritic(hs, conv_features, depth_scale, conv_impl=conv_impl,
-                      layer_norm=critic_layer_norm, dropout=critic_dropout)
+                      layer_norm=critic_layer_norm)
   return SACNetworks(actor, critic, low, high)
 
 
@@ -220,8 +216,7 @@ def make_networks_from_config(cfg, conv_impl: str = "xla", box=None) -> SACNetwo
   return make_networks(
       *(action_box(cfg) if box is None else box), hidden=cfg.sac.hidden,
       conv_features=cfg.sac.conv_features, depth_scale=depth_input_scale(cfg),
-      conv_impl=conv_impl, critic_layer_norm=cfg.sac.critic_layer_norm,
-      critic_dropout=cfg.sac.critic_dropout)
+      conv_impl=conv_impl, critic_layer_norm=cfg.sac.critic_layer_norm)
 
 
 # ----------------------------------------------------------------------------------------

@@ -77,8 +77,7 @@ def critic_target(nets: nw.SACNetworks, actor_params: Params, target_critic_para
   """
   mean, log_std = nets.actor.apply({"params": actor_params}, batch.next_obs)
   next_a, next_logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
-  next_q = nets.critic.apply({"params": target_critic_params}, batch.next_obs, next_a,
-                            rngs={"dropout": jax.random.fold_in(key, 1)})
+  next_q = nets.critic.apply({"params": target_critic_params}, batch.next_obs, next_a)
   next_v = jnp.min(next_q, axis=0) - alpha * next_logp
   discount = gamma if batch.discount is None else batch.discount  # n-step: gamma^k
   y = batch.reward + discount * (1.0 - batch.terminal) * next_v
@@ -91,8 +90,7 @@ def critic_loss(critic_params: Params, target_critic_params: Params, actor_param
   """Twin-Q loss: 0.5 * sum_i wmean_b (Q_i(s, a) - y)^2. Returns (loss, {"q": (2, B),
   "target": (B,)})."""
   y = critic_target(nets, actor_params, target_critic_params, alpha, batch, key, gamma)
-  q = nets.critic.apply({"params": critic_params}, batch.obs, batch.action,
-                        rngs={"dropout": jax.random.fold_in(key, 2)})  # (2, B)
+  q = nets.critic.apply({"params": critic_params}, batch.obs, batch.action)  # (2, B)
   per_sample = 0.5 * jnp.sum((q - y[None]) ** 2, axis=0)
   return _wmean(per_sample, batch.weight), {"q": q, "target": y}
 
@@ -106,8 +104,7 @@ def actor_loss(actor_params: Params, critic_params: Params, alpha: jax.Array, ba
   [-1, 1]) where the weight is > 0. Returns (loss, (log_prob (B,), anchor_gap ()))."""
   mean, log_std = nets.actor.apply({"params": actor_params}, batch.obs)
   a, logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
-  q = nets.critic.apply({"params": critic_params}, batch.obs, a,
-                        rngs={"dropout": jax.random.fold_in(key, 1)})
+  q = nets.critic.apply({"params": critic_params}, batch.obs, a)
   loss = jnp.mean(alpha * logp - jnp.min(q, axis=0))
   gap = jnp.zeros(())
   if anchor_weight > 0:
