@@ -287,10 +287,6 @@ class SACConfig:
                              "nats of the density on the action box (the paper's -2): "
                              "-dim(A) on [-1, 1]^2 is -2 + log(0.25 * 1) = -3.39 on the "
                              "vineyard's [0, 0.5] x [-1, 1]")
-  steering_entropy: float = _f(0.0, -20.0, 0.0, doc="with auto_alpha: the steering's own "
-                               "entropy target (nats), held by a temperature of its own, and "
-                               "the speed's target_entropy minus it (0: one temperature for "
-                               "the joint entropy)")
   batch_size: int = _f(128, 1, 1 << 16)
   buffer_size: int = _f(100_000, 1, 1 << 26)
   replay_depth_dtype: str = _f("uint16", choices=("uint8", "uint16"),

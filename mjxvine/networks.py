@@ -347,17 +347,6 @@ def sample_squashed(key: jax.Array, mean: jax.Array, log_std: jax.Array, low: ja
   return squash(u, low, high), squashed_log_prob(u, mean, log_std, low, high)
 
 
-def sample_squashed_per_dim(key: jax.Array, mean: jax.Array, log_std: jax.Array,
-                            low: jax.Array, high: jax.Array) -> tuple[jax.Array, jax.Array]:
-  """`sample_squashed` with the log-density of each action dimension: (action (..., A),
-  log_prob (..., A)); the dimensions are independent, so they sum to the joint one."""
-  u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
-  z = (u - mean) * jnp.exp(-log_std)
-  log_n = -0.5 * z * z - log_std - 0.5 * math.log(2.0 * math.pi)
-  log_dtanh = 2.0 * (math.log(2.0) - u - jax.nn.softplus(-2.0 * u))
-  return squash(u, low, high), log_n - log_dtanh - jnp.log(0.5 * (high - low))
-
-
 def deterministic_action(mean: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
   """The test-time action: the squashed, box-mapped mean (..., A)."""
   return squash(mean, low, high)

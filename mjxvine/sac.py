@@ -49,11 +49,10 @@ class LearnerState(flax.struct.PyTreeNode):
   actor_opt_state: optax.OptState
   critic_opt_state: optax.OptState
   alpha_opt_state: optax.OptState
-  log_alpha: jax.Array  # () float32 (of the speed alone with log_alpha_steer)
+  log_alpha: jax.Array  # () float32
   step: jax.Array  # () int32, gradient steps taken
   averaged_actor_params: Params
   anchor_actor_params: Params = None
-  log_alpha_steer: jax.Array = None  # () the steering's own temperature (sac.steering_entropy)
 
 
 # ----------------------------------------------------------------------------------------
@@ -67,17 +66,6 @@ def _wmean(x: jax.Array, w: jax.Array | None) -> jax.Array:
   return jnp.sum(w * x) / jnp.maximum(jnp.sum(w), 1.0)
 
 
-def _entropy_sample(nets: nw.SACNetworks, key: jax.Array, mean: jax.Array, log_std: jax.Array,
-                    alpha: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-  """(action (B, A), log_prob, alpha * log_prob (B,)): one temperature for the joint
-  log-density (alpha ()), or one per action dimension (alpha (A,), log_prob (B, A))."""
-  if jnp.ndim(alpha) == 0:
-    a, logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
-    return a, logp, alpha * logp
-  a, logp = nw.sample_squashed_per_dim(key, mean, log_std, nets.action_low, nets.action_high)
-  return a, logp, jnp.sum(alpha * logp, axis=-1)
-
-
 def critic_target(nets: nw.SACNetworks, actor_params: Params, target_critic_params: Params,
                   alpha: jax.Array, batch: Transition, key: jax.Array,
                   gamma: float) -> jax.Array:
@@ -88,9 +76,9 @@ def critic_target(nets: nw.SACNetworks, actor_params: Params, target_critic_para
   the batch has one. Truncation does not stop bootstrapping.
   """
   mean, log_std = nets.actor.apply({"params": actor_params}, batch.next_obs)
-  next_a, _, entropy_cost = _entropy_sample(nets, key, mean, log_std, alpha)
+  next_a, next_logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
   next_q = nets.critic.apply({"params": target_critic_params}, batch.next_obs, next_a)
-  next_v = jnp.min(next_q, axis=0) - entropy_cost
+  next_v = jnp.min(next_q, axis=0) - alpha * next_logp
   discount = gamma if batch.discount is None else batch.discount  # n-step: gamma^k
   y = batch.reward + discount * (1.0 - batch.terminal) * next_v
   return jax.lax.stop_gradient(y)
@@ -115,9 +103,9 @@ def actor_loss(actor_params: Params, critic_params: Params, alpha: jax.Array, ba
   actions of this actor and of the frozen `anchor_params`, each dimension scaled to
   [-1, 1]) where the weight is > 0. Returns (loss, (log_prob (B,), anchor_gap ()))."""
   mean, log_std = nets.actor.apply({"params": actor_params}, batch.obs)
-  a, logp, entropy_cost = _entropy_sample(nets, key, mean, log_std, alpha)
+  a, logp = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
   q = nets.critic.apply({"params": critic_params}, batch.obs, a)
-  loss = jnp.mean(entropy_cost - jnp.min(q, axis=0))
+  loss = jnp.mean(alpha * logp - jnp.min(q, axis=0))
   gap = jnp.zeros(())
   if anchor_weight > 0:
     anchor_mean, _ = nets.actor.apply({"params": anchor_params}, batch.obs)
@@ -204,17 +192,15 @@ def init_state(nets: nw.SACNetworks, cfg: SACConfig, key: jax.Array, obs: Obs) -
   fresh optimiser states, log_alpha = log(sac.alpha)."""
   actor_params, critic_params = nw.init_params(nets, key, obs)
   log_alpha = jnp.asarray(math.log(max(cfg.alpha, 1e-8)), jnp.float32)
-  steer = jnp.copy(log_alpha) if cfg.steering_entropy < 0 else None
   opt = networks_optimizer(cfg.learning_rate)
   return LearnerState(
       actor_params=actor_params, critic_params=critic_params,
       target_critic_params=jax.tree.map(jnp.copy, critic_params),
       actor_opt_state=opt.init(actor_params), critic_opt_state=opt.init(critic_params),
-      alpha_opt_state=temperature_optimizer(cfg).init(
-          log_alpha if steer is None else (log_alpha, steer)), log_alpha=log_alpha,
+      alpha_opt_state=temperature_optimizer(cfg).init(log_alpha), log_alpha=log_alpha,
       step=jnp.zeros((), jnp.int32), averaged_actor_params=jax.tree.map(jnp.copy, actor_params),
       anchor_actor_params=(jax.tree.map(jnp.copy, actor_params) if cfg.anchor_weight > 0
-                           else None), log_alpha_steer=steer)
+                           else None))
 
 
 def temperature_optimizer(cfg: SACConfig) -> optax.GradientTransformation:
@@ -239,9 +225,7 @@ def gradient_step(nets: nw.SACNetworks, cfg: SACConfig, state: LearnerState, bat
   averaged actor at `sac.actor_ema_tau`. Returns (state, metrics of the step)."""
   opt = networks_optimizer(cfg.learning_rate)  # the rate itself is in the states
   k_critic, k_actor = jax.random.split(key)
-  per_dim = state.log_alpha_steer is not None  # sac.steering_entropy: [speed, steering]
-  alpha = (jnp.exp(jnp.stack([state.log_alpha, state.log_alpha_steer])) if per_dim
-           else jnp.exp(state.log_alpha))
+  alpha = jnp.exp(state.log_alpha)
   (c_loss, c_aux), c_grads = jax.value_and_grad(critic_loss, has_aux=True)(
       state.critic_params, state.target_critic_params, state.actor_params, alpha, batch,
       k_critic, nets, cfg.gamma)
@@ -255,26 +239,11 @@ def gradient_step(nets: nw.SACNetworks, cfg: SACConfig, state: LearnerState, bat
   actor_params = optax.apply_updates(state.actor_params, _as_recorded(a_updates, state.step))
 
   log_alpha, alpha_opt_state = state.log_alpha, state.alpha_opt_state
-  log_alpha_steer, steer_metrics = state.log_alpha_steer, {}
-  if per_dim:  # each dimension's temperature holds its own target; they sum to target_entropy
-    targets = (cfg.target_entropy - cfg.steering_entropy, cfg.steering_entropy)
-    def temp_loss(logs):
-      return sum(alpha_loss(la, logp[:, i], t) for i, (la, t) in enumerate(zip(logs, targets)))
-    temps = (log_alpha, log_alpha_steer)
-    al_loss = temp_loss(temps)
-    if cfg.auto_alpha:
-      al_updates, alpha_opt_state = temperature_optimizer(cfg).update(
-          jax.grad(temp_loss)(temps), alpha_opt_state)
-      log_alpha, log_alpha_steer = optax.apply_updates(temps, al_updates)
-    steer_metrics = {"alpha_steer": jnp.exp(log_alpha_steer),
-                     "entropy_steer": -jnp.mean(logp[:, 1])}
-    logp = jnp.sum(logp, axis=-1)
-  else:
-    al_loss = alpha_loss(log_alpha, logp, cfg.target_entropy)
-    if cfg.auto_alpha:
-      g = jax.grad(alpha_loss)(log_alpha, logp, cfg.target_entropy)
-      al_updates, alpha_opt_state = temperature_optimizer(cfg).update(g, alpha_opt_state)
-      log_alpha = optax.apply_updates(log_alpha, al_updates)
+  al_loss = alpha_loss(log_alpha, logp, cfg.target_entropy)
+  if cfg.auto_alpha:
+    g = jax.grad(alpha_loss)(log_alpha, logp, cfg.target_entropy)
+    al_updates, alpha_opt_state = temperature_optimizer(cfg).update(g, alpha_opt_state)
+    log_alpha = optax.apply_updates(log_alpha, al_updates)
 
   averaged = (polyak(state.averaged_actor_params, actor_params, cfg.actor_ema_tau)
               if cfg.actor_ema_tau > 0 else actor_params)
@@ -283,9 +252,8 @@ def gradient_step(nets: nw.SACNetworks, cfg: SACConfig, state: LearnerState, bat
       target_critic_params=polyak(state.target_critic_params, critic_params, tau),
       actor_opt_state=actor_opt_state, critic_opt_state=critic_opt_state,
       alpha_opt_state=alpha_opt_state, log_alpha=log_alpha, step=state.step + 1,
-      averaged_actor_params=averaged, anchor_actor_params=state.anchor_actor_params,
-      log_alpha_steer=log_alpha_steer)
-  metrics = {**steer_metrics,
+      averaged_actor_params=averaged, anchor_actor_params=state.anchor_actor_params)
+  metrics = {
       "critic_loss": c_loss, "actor_loss": a_loss, "alpha_loss": al_loss,
       "alpha": jnp.exp(log_alpha), "q_mean": jnp.mean(c_aux["q"]),
       "target_mean": jnp.mean(c_aux["target"]), "entropy": -jnp.mean(logp),

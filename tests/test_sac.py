@@ -188,36 +188,6 @@ def test_update_step(tiny):
   assert float(new.log_alpha) == pytest.approx(float(state.log_alpha) + cfg.learning_rate)
 
 
-def test_steering_entropy_gives_each_dimension_its_temperature_and_target(tiny):
-  """sac.steering_entropy: the per-dimension log-densities sum to the joint one, the
-  actor's loss weighs each by its temperature, and each temperature moves towards its own
-  target (speed: target_entropy minus the steering's)."""
-  nets, actor, critic, _, batch, fns = tiny
-  key = jax.random.PRNGKey(11)
-  mean, log_std = nets.actor.apply({"params": actor}, batch.obs)
-  a1, joint = nw.sample_squashed(key, mean, log_std, nets.action_low, nets.action_high)
-  a2, dims = nw.sample_squashed_per_dim(key, mean, log_std, nets.action_low, nets.action_high)
-  np.testing.assert_allclose(np.asarray(a1), np.asarray(a2), rtol=1e-6)
-  np.testing.assert_allclose(np.asarray(dims).sum(-1), np.asarray(joint), rtol=1e-5, atol=1e-5)
-  alphas = jnp.asarray([0.1, 0.7])
-  loss, (logp, _) = sac.actor_loss(actor, critic, alphas, batch, key, nets)
-  expected = np.mean(np.asarray(dims) @ np.asarray(alphas)
-                     - _np_q(_np(critic), _np(batch.obs), np.asarray(a2, np.float64)).min(0))
-  np.testing.assert_allclose(float(loss), expected, rtol=1e-4, atol=1e-5)
-  assert logp.shape == (B, 2)
-  # speed target far above its entropy (its alpha grows), steering far below (it shrinks)
-  cfg = SACConfig(auto_alpha=True, target_entropy=40.0, steering_entropy=-20.0)
-  agent = sac.make_sac(nets, cfg)
-  state = agent.init(jax.random.PRNGKey(1), batch.obs)
-  new, metrics = agent.update(state, batch, jax.random.PRNGKey(2))
-  assert float(new.log_alpha) == pytest.approx(float(state.log_alpha) + cfg.learning_rate)
-  assert float(new.log_alpha_steer) == pytest.approx(
-      float(state.log_alpha_steer) - cfg.learning_rate)
-  assert {"alpha_steer", "entropy_steer"} <= set(metrics)
-  assert sac.make_sac(nets, SACConfig()).init(jax.random.PRNGKey(1), batch.obs
-                                               ).log_alpha_steer is None
-
-
 # ----------------------------------------------------------------------------------------
 # Replay buffer.
 
