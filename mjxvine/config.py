@@ -235,9 +235,6 @@ class EnvConfig:
   v_max: float = _f(0.5, 0.01, 5.0, doc="linear speed box [v_min, v_max] m/s")
   w_max: float = _f(1.0, 0.01, 10.0, doc="angular speed box [-w_max, w_max] rad/s")
   heading_weight: float = _f(0.6, 0.0, 1e3)
-  steer_weight: float = _f(0.0, 0.0, 1e4, doc="the reward term `steer`: minus this times "
-                           "the commanded turn rate squared (rad/s), every step (0: none, "
-                           "the paper's)")
   progress_weight: float = _f(35.0, 0.0, 1e4)
   success_reward: float = _f(1000.0, -1e5, 1e5)
   collision_reward: float = _f(-500.0, -1e5, 1e5)

@@ -20,8 +20,7 @@ of `latency` steps ago, the state's v_prev, w_prev stay the policy's command.
 `done` marks the end of an episode, `info["truncation"]` is 1 where it ended by time-out or
 a physics reset (learners bootstrap through those), and `metrics` holds the step's outcome
 flags and its named reward terms ("reward/heading", "reward/progress", "reward/success",
-"reward/collision", "reward/reverse", and "reward/steer" where `env.steer_weight` > 0; they
-sum to `reward`). `restart(state, new_start)`
+"reward/collision", "reward/reverse"; they sum to `reward`). `restart(state, new_start)`
 starts the next episode from the same start pose or a new random one (random world, lane,
 point along the lane, direction, jitter); `training_env(cfg)` is the batch of
 auto-resetting envs the trainer uses, a new pose every `env.pose_reset_every` episodes
@@ -56,11 +55,6 @@ from mjxvine.worlds import (Vineyard, batch_models, build_models, camera_limits,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
 REWARD_TERMS = ("heading", "progress", "success", "collision", "reverse")
-
-
-def reward_terms(cfg: Config) -> tuple[str, ...]:
-  """The named reward terms of `cfg`: REWARD_TERMS, and "steer" where env.steer_weight > 0."""
-  return REWARD_TERMS + (("steer",) if cfg.env.steer_weight > 0 else ())
 MAX_QVEL = 50.0  # beyond this (m/s or rad/s) the physics has exploded
 START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the lane's start
 YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
@@ -329,7 +323,7 @@ class VineyardEnv(Env):
         truncation=jp.float32(0), outcome=jp.int32(RUNNING), episode_return=jp.float32(0),
         last_return=jp.float32(0), last_outcome=jp.int32(RUNNING), last_length=jp.int32(0))
     metrics = {name: jp.float32(0) for name in OUTCOMES[1:]}
-    metrics.update({REWARD_PREFIX + k: jp.float32(0) for k in reward_terms(self.cfg)})
+    metrics.update({REWARD_PREFIX + k: jp.float32(0) for k in REWARD_TERMS})
     return State(pipeline_state=d, obs=obs, reward=jp.float32(0), done=jp.float32(0),
                  metrics=metrics, info=info)
 
@@ -423,8 +417,6 @@ class VineyardEnv(Env):
         "collision": jp.where((outcome == COLLISION) | (outcome == LEFT_LANE),
                               env.collision_reward, 0.0),
         "reverse": jp.where(outcome == REVERSED, env.reverse_reward, 0.0)}
-    if env.steer_weight > 0:  # a lower steering gain: the late policies chase the image
-      terms["steer"] = -env.steer_weight * action[1] ** 2
     terms = {k: jp.where(exploded, 0.0, v).astype(jp.float32) for k, v in terms.items()}
     reward = sum(terms.values())
     done = outcome != RUNNING
