@@ -322,6 +322,11 @@ class SACConfig:
   critic_layer_norm: bool = _f(False, doc="LayerNorm before each hidden ReLU of the "
                                "critics (not the paper's; the actor, and so the exported "
                                "policy, unchanged)")
+  privileged_critics: bool = _f(False, doc="the critics also read the simulator's lane "
+                                "state (obs['lane']: lateral offset / half lane width, "
+                                "heading error in rad, distance to the row's end / 10 m), "
+                                "an asymmetric actor-critic; the actor, and so the exported "
+                                "policy, still sees only the depth and the state vector")
   reward_scale: float = _f(1.0, 1e-6, 1e6, doc="rewards are multiplied by this before the "
                            "replay (1: the paper; returns are logged unscaled)")
 

@@ -60,6 +60,8 @@ START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the l
 YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
 COLLISION_MARGIN_M = 0.05  # a plant nearer than this to the robot's footprint is a collision
 PARKED_BELOW_M = PARKED_Z / 2  # a plant below this height is an unused slot
+LANE_DIST_SCALE_M = 10.0  # obs["lane"]'s distance to the row's end is in units of this
+MIRROR_LANE_SIGN = (-1.0, -1.0, 1.0)  # obs["lane"] mirrored left-right
 
 
 class PoolWorld(NamedTuple):
@@ -122,7 +124,10 @@ class VineyardEnv(Env):
   @property
   def observation_size(self):
     c = self.cfg.camera
-    return {"depth": (c.height, c.width, 1), "state": (3,)}
+    size = {"depth": (c.height, c.width, 1), "state": (3,)}
+    if self.cfg.sac.privileged_critics:
+      size["lane"] = (3,)
+    return size
 
   @property
   def action_size(self) -> int:
@@ -142,9 +147,13 @@ class VineyardEnv(Env):
   @staticmethod
   def mirror_obs(obs: dict) -> dict:
     """The observation mirrored left-right (any leading batch dims): the depth image's
-    columns reversed, and the previous turn rate and the yaw negated."""
-    return {"depth": jp.flip(obs["depth"], axis=-2),
-            "state": obs["state"] * jp.asarray(MIRROR_STATE_SIGN, obs["state"].dtype)}
+    columns reversed, the previous turn rate and the yaw negated (and the lateral offset
+    and heading error of obs["lane"], where present)."""
+    mirrored = {"depth": jp.flip(obs["depth"], axis=-2),
+                "state": obs["state"] * jp.asarray(MIRROR_STATE_SIGN, obs["state"].dtype)}
+    if "lane" in obs:  # lateral offset and heading error change sign
+      mirrored["lane"] = obs["lane"] * jp.asarray(MIRROR_LANE_SIGN, obs["lane"].dtype)
+    return mirrored
 
   @staticmethod
   def mirror_action(action: jax.Array) -> jax.Array:
@@ -315,7 +324,7 @@ class VineyardEnv(Env):
     noise = (self._noise_factor(jax.random.fold_in(k_ref, 1), ref_jitter)
              if noise_factor is None else jp.float32(noise_factor))
     faults = robot_faults.draw(self.cfg.robot, k_ref)
-    obs = self._observe(w, d, prev_action, k_obs, yaw_ref, noise, faults)
+    obs = self._observe(w, d, prev_action, k_obs, yaw_ref, noise, faults, pose)
     info = dict(
         pose=pose, rng=k_next, episodes=episodes, episode_steps=jp.int32(0), yaw_ref=yaw_ref,
         noise_factor=noise, **robot_faults.info_entry(faults),
@@ -340,14 +349,29 @@ class VineyardEnv(Env):
     return jax.random.uniform(key, (), minval=lo, maxval=hi)
 
   def _observe(self, w: PoolWorld, d, prev_action, key, yaw_ref, noise_factor,
-               faults: robot_faults.RobotFaults | None = None) -> dict:
+               faults: robot_faults.RobotFaults | None = None, pose: dict | None = None
+               ) -> dict:
     cam = robot_faults.mounted_camera(self.cfg.robot, d, self.camera.cam_id, faults)
     ids = self._near_plants.near(w.index, cam.cam_xpos[self.camera.cam_id, :2])
     image = depth_cam.render_depth(self.camera, w.model, cam, self._plants.take(ids, w.index),
                                    self._terrain_ref[w.index])
     noisy = sensor.observe(image, key, self.cfg.camera, self.cfg.sensor, noise_factor)
     yaw = _wrap(robot_faults.imu_yaw(self.cfg.robot, _yaw(d.qpos[3:7]) - yaw_ref, faults))
-    return {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
+    obs = {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
+    if self.cfg.sac.privileged_critics and pose is not None:
+      obs["lane"] = self.lane_state(pose, d.qpos[:2], _yaw(d.qpos[3:7]))
+    return obs
+
+  def lane_state(self, pose: dict, xy: jax.Array, yaw: jax.Array) -> jax.Array:
+    """(3,) float32 the critics may read (`sac.privileged_critics`), never the actor:
+    [lateral offset / half lane width, heading error (rad) against the lane's tangent,
+    distance to the row's end / 10 m]."""
+    line, k, _, width = self.lanes.lane(pose["world"], pose["lane"])
+    _, tangent, lateral, _ = lane_frame(line, xy, pose["direction"], k)
+    heading_err = _wrap(yaw - jp.arctan2(tangent[1], tangent[0]))
+    dist = jp.linalg.norm(xy - pose["eor"])
+    return jp.stack([lateral / (width / 2), heading_err, dist / LANE_DIST_SCALE_M]
+                    ).astype(jp.float32)
 
   def plant_clearance(self, world: jax.Array, xy: jax.Array, yaw: jax.Array) -> jax.Array:
     """Smallest distance (m) from the robot footprint rectangle at (xy, yaw) to a plant trunk
@@ -423,7 +447,8 @@ class VineyardEnv(Env):
     truncation = (outcome == TIMEOUT) | (outcome == PHYSICS)
 
     k_obs, k_next = jax.random.split(info["rng"])
-    obs = self._observe(w, d, action, k_obs, info["yaw_ref"], info["noise_factor"], faults)
+    obs = self._observe(w, d, action, k_obs, info["yaw_ref"], info["noise_factor"], faults,
+                        pose)
     ret = info["episode_return"] + reward
     new_info = dict(info, rng=k_next, episode_steps=steps, prev_action=action, dist=dist,
                     **robot_faults.info_entry(faults),

@@ -137,7 +137,8 @@ class Actor(nn.Module):
 
 
 class Critic(nn.Module):
-  """One Q network: `__call__(obs, action (..., A)) -> q (...,)`, with its own tower."""
+  """One Q network: `__call__(obs, action (..., A)) -> q (...,)`, with its own tower; it
+  also reads obs["lane"] (..., 3) where the observation has it (`sac.privileged_critics`)."""
   hidden: Sequence[int] = (256, 256)
   conv_features: int = 32
   depth_scale: float = 1.0
@@ -146,8 +147,10 @@ class Critic(nn.Module):
 
   @nn.compact
   def __call__(self, obs: Obs, action: jax.Array) -> jax.Array:
+    # obs["lane"]: the simulator's lane state, present only for privileged critics
+    lane = (obs["lane"],) if isinstance(obs, dict) and "lane" in obs else ()
     x = _torso_input(obs, self.conv_features, self.depth_scale, self.conv_impl,
-                     extra=(action,))
+                     extra=lane + (action,))
     for i, h in enumerate(self.hidden):
       x = nn.Dense(h, name=f"dense{i}")(x)
       if self.layer_norm:

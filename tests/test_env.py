@@ -82,6 +82,29 @@ def test_reward_matches_the_paper(env, fns):
   assert np.all(d_prev - d_now > 0.01)  # it drove towards the EoR (from rest)
 
 
+@pytest.mark.slow  # compiles another env step (~45 s, 2 cores)
+def test_privileged_critics_observe_the_lane_state_and_its_mirror():
+  cfg = load_config("experiments/smoke.yaml", [
+      "camera.width=16", "camera.height=12", "env.max_steps=20", "world.pool_size=2",
+      "sac.privileged_critics=true"])
+  env = training_env(cfg)
+  assert env.observation_size["lane"] == (3,)
+  reset_to = jax.jit(jax.vmap(env.reset_to, in_axes=(0, 0, 0, 0, 0, 0, 0)))
+  lateral, yaw = np.array([0.1, -0.2, 0.0, 0.15]), np.array([0.05, 0.0, -0.1, 0.2])
+  s = _start((reset_to, None), lateral=lateral, yaw=yaw)
+  lane = np.asarray(s.obs["lane"])
+  half = np.array([float(env.lanes.lane(w, l)[3]) / 2 for w, l in [(0, 0), (1, 1), (0, 2),
+                                                                     (1, 0)]])
+  np.testing.assert_allclose(lane[:, 0], lateral / half, atol=2e-3)
+  np.testing.assert_allclose(lane[:, 1], yaw, atol=2e-3)
+  np.testing.assert_allclose(lane[:, 2], np.asarray(s.info["dist"]) / 10.0, rtol=1e-5)
+  s2, final_obs = jax.jit(env.step_batch)(s, jp.asarray([[0.5, 0.3]] * N))
+  assert final_obs["lane"].shape == (N, 3) and not np.allclose(final_obs["lane"], lane)
+  mirrored = env.mirror_obs(s.obs)
+  np.testing.assert_array_equal(mirrored["lane"], lane * np.array([-1, -1, 1], np.float32))
+  np.testing.assert_array_equal(mirrored["state"][:, 2], -np.asarray(s.obs["state"][:, 2]))
+
+
 @pytest.mark.slow  # compiles the env step (~45 s, 2 cores); the trainer's tests step it
 def test_terminations(env, fns):
   _, step = fns

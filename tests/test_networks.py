@@ -69,6 +69,23 @@ def test_actor_critic_shapes_and_batch_dims():
   assert not np.allclose(k0, k1)
 
 
+def test_privileged_critics_read_the_lane_state_and_the_actor_does_not():
+  nets = nw.make_networks(LOW, HIGH, hidden=8, conv_features=4)
+  obs = dict(_vine_obs((2,), 41), lane=jnp.array([[0.3, -0.1, 1.2], [-0.5, 0.2, 0.4]]))
+  actor, critic = nw.init_params(nets, jax.random.PRNGKey(0), obs)
+  plain_actor, plain_critic = nw.init_params(nets, jax.random.PRNGKey(0), _vine_obs((2,), 41))
+  # 3 more inputs to each critic's first dense layer; the actor is the same network
+  assert nw.num_params(critic) == nw.num_params(plain_critic) + 2 * 3 * 8
+  assert nw.num_params(actor) == nw.num_params(plain_actor)
+  other = dict(obs, lane=obs["lane"] + 1.0)
+  a = jnp.zeros((2, 2))
+  for o in (obs, other):
+    np.testing.assert_array_equal(nets.actor.apply({"params": actor}, o)[0],
+                                  nets.actor.apply({"params": actor}, _vine_obs((2,), 41))[0])
+  q, q_other = (nets.critic.apply({"params": critic}, o, a) for o in (obs, other))
+  assert q.shape == (2, 2) and not np.allclose(q, q_other)
+
+
 def test_tower_rejects_too_small_images(spec_nets):
   assert tower.tower_output_size((112, 112)) == (11, 11)  # padded to 113
   assert tower.tower_output_size((33, 40)) == (1, 2) and tower.MIN_IMAGE_SIZE == 33
