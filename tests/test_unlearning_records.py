@@ -40,7 +40,8 @@ def test_the_page_has_lever_rows_to_check():
   names = {name for name, _ in lever_rows()}
   assert {"n3-seed4", "n3-seed0", "n3-seed1", "n3-seed2", "lane-seed4", "droq-seed0",
           "steer-seed4", "steer-seed2", "pose1-seed0", "n3vmin-seed2", "steerw-seed4",
-          "steerw-seed2"} <= names
+          "steerw-seed2", "priv-seed4", "priv-seed2", "priv-seed0", "priv-seed1", "priv-seed6",
+          "succ100-seed4"} <= names
 
 
 @pytest.mark.parametrize("name,cells", lever_rows(), ids=lambda v: v if isinstance(v, str) else "")
