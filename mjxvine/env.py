@@ -46,7 +46,7 @@ from mjxvine.driver import pure_pursuit  # noqa: F401 (the reference driver, rea
 # Outcome codes and lane geometry are also read from here (starts, evaluate, tests).
 from mjxvine.episodes import (COLLISION, LEFT_LANE, OUTCOMES, PHYSICS, REVERSED,  # noqa: F401
                               REWARD_PREFIX, RUNNING, SUCCESS, TIMEOUT)
-from mjxvine.lanes import LaneTable, lane_frame, point_ahead  # noqa: F401
+from mjxvine.lanes import MIRROR_LANE_SIGN, LaneTable, lane_frame, point_ahead  # noqa: F401
 from mjxvine.nearby import NearbyIndex
 from mjxvine.wrappers import AutoResetBatch
 from mjxvine.worlds.layout import CENTERLINE_STEP_M
@@ -60,8 +60,6 @@ START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the l
 YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
 COLLISION_MARGIN_M = 0.05  # a plant nearer than this to the robot's footprint is a collision
 PARKED_BELOW_M = PARKED_Z / 2  # a plant below this height is an unused slot
-LANE_DIST_SCALE_M = 10.0  # obs["lane"]'s distance to the row's end is in units of this
-MIRROR_LANE_SIGN = (-1.0, -1.0, 1.0)  # obs["lane"] mirrored left-right
 
 
 class PoolWorld(NamedTuple):
@@ -123,11 +121,8 @@ class VineyardEnv(Env):
   # ------------------------------------------------------------------ brax Env API
   @property
   def observation_size(self):
-    c = self.cfg.camera
-    size = {"depth": (c.height, c.width, 1), "state": (3,)}
-    if self.cfg.sac.privileged_critics:
-      size["lane"] = (3,)
-    return size
+    c, lane = self.cfg.camera, {"lane": (3,)} if self.cfg.sac.privileged_critics else {}
+    return {"depth": (c.height, c.width, 1), "state": (3,), **lane}
 
   @property
   def action_size(self) -> int:
@@ -151,7 +146,7 @@ class VineyardEnv(Env):
     and heading error of obs["lane"], where present)."""
     mirrored = {"depth": jp.flip(obs["depth"], axis=-2),
                 "state": obs["state"] * jp.asarray(MIRROR_STATE_SIGN, obs["state"].dtype)}
-    if "lane" in obs:  # lateral offset and heading error change sign
+    if "lane" in obs:
       mirrored["lane"] = obs["lane"] * jp.asarray(MIRROR_LANE_SIGN, obs["lane"].dtype)
     return mirrored
 
@@ -349,8 +344,7 @@ class VineyardEnv(Env):
     return jax.random.uniform(key, (), minval=lo, maxval=hi)
 
   def _observe(self, w: PoolWorld, d, prev_action, key, yaw_ref, noise_factor,
-               faults: robot_faults.RobotFaults | None = None, pose: dict | None = None
-               ) -> dict:
+               faults: robot_faults.RobotFaults | None, pose: dict) -> dict:
     cam = robot_faults.mounted_camera(self.cfg.robot, d, self.camera.cam_id, faults)
     ids = self._near_plants.near(w.index, cam.cam_xpos[self.camera.cam_id, :2])
     image = depth_cam.render_depth(self.camera, w.model, cam, self._plants.take(ids, w.index),
@@ -358,20 +352,9 @@ class VineyardEnv(Env):
     noisy = sensor.observe(image, key, self.cfg.camera, self.cfg.sensor, noise_factor)
     yaw = _wrap(robot_faults.imu_yaw(self.cfg.robot, _yaw(d.qpos[3:7]) - yaw_ref, faults))
     obs = {"depth": noisy[..., None], "state": jp.array([prev_action[0], prev_action[1], yaw])}
-    if self.cfg.sac.privileged_critics and pose is not None:
-      obs["lane"] = self.lane_state(pose, d.qpos[:2], _yaw(d.qpos[3:7]))
+    if self.cfg.sac.privileged_critics:  # what only the critics read
+      obs["lane"] = self.lanes.lane_state(pose, d.qpos[:2], _yaw(d.qpos[3:7]))
     return obs
-
-  def lane_state(self, pose: dict, xy: jax.Array, yaw: jax.Array) -> jax.Array:
-    """(3,) float32 the critics may read (`sac.privileged_critics`), never the actor:
-    [lateral offset / half lane width, heading error (rad) against the lane's tangent,
-    distance to the row's end / 10 m]."""
-    line, k, _, width = self.lanes.lane(pose["world"], pose["lane"])
-    _, tangent, lateral, _ = lane_frame(line, xy, pose["direction"], k)
-    heading_err = _wrap(yaw - jp.arctan2(tangent[1], tangent[0]))
-    dist = jp.linalg.norm(xy - pose["eor"])
-    return jp.stack([lateral / (width / 2), heading_err, dist / LANE_DIST_SCALE_M]
-                    ).astype(jp.float32)
 
   def plant_clearance(self, world: jax.Array, xy: jax.Array, yaw: jax.Array) -> jax.Array:
     """Smallest distance (m) from the robot footprint rectangle at (xy, yaw) to a plant trunk
@@ -447,8 +430,7 @@ class VineyardEnv(Env):
     truncation = (outcome == TIMEOUT) | (outcome == PHYSICS)
 
     k_obs, k_next = jax.random.split(info["rng"])
-    obs = self._observe(w, d, action, k_obs, info["yaw_ref"], info["noise_factor"], faults,
-                        pose)
+    obs = self._observe(w, d, action, k_obs, info["yaw_ref"], info["noise_factor"], faults, pose)
     ret = info["episode_return"] + reward
     new_info = dict(info, rng=k_next, episode_steps=steps, prev_action=action, dist=dist,
                     **robot_faults.info_entry(faults),

@@ -9,7 +9,11 @@ import jax
 import jax.numpy as jp
 import numpy as np
 
+from mjxvine.angles import wrap
 from mjxvine.worlds import Vineyard
+
+LANE_DIST_SCALE_M = 10.0  # `LaneTable.lane_state`'s distance to the row's end is in these
+MIRROR_LANE_SIGN = (-1.0, -1.0, 1.0)  # `LaneTable.lane_state` mirrored left-right
 
 REFERENCE_ROW_M = 24.0  # the paper's test rows, which its protocol drives in 700 steps
 
@@ -75,6 +79,18 @@ class LaneTable:
               self.width_m[world, lane])
     return (self.centerline[world, lane], self.samples[world, lane],
             self.length_m[world, lane], self.width_m[world, lane])
+
+  def lane_state(self, pose: dict, xy: jax.Array, yaw: jax.Array) -> jax.Array:
+    """(3,) float32, what privileged critics read (`sac.privileged_critics`), never the
+    actor: [lateral offset / half lane width, heading error (rad) against the lane's
+    tangent, distance to the row's end / 10 m] of a robot at `xy` (m), `yaw` (rad) on the
+    episode's lane (`pose`: world, lane, direction, eor)."""
+    line, k, _, width = self.lane(pose["world"], pose["lane"])
+    _, tangent, lateral, _ = lane_frame(line, xy, pose["direction"], k)
+    heading_err = wrap(yaw - jp.arctan2(tangent[1], tangent[0]))
+    dist = jp.linalg.norm(xy - pose["eor"])
+    return jp.stack([lateral / (width / 2), heading_err, dist / LANE_DIST_SCALE_M]
+                    ).astype(jp.float32)
 
 
 def lane_frame(line: jax.Array, p: jax.Array, direction: jax.Array, samples=None):

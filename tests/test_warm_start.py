@@ -18,6 +18,7 @@ from mjxvine.deploy import NumpyPolicy, read_policy_file
 from mjxvine.training.warm_start import load_agent, network_shapes, warm_start
 
 SHIPPED = Path("models/jackal.npz")
+JACKAL = Path("experiments/jackal.yaml")
 
 
 def test_a_policy_file_names_its_agent_file():
@@ -71,6 +72,22 @@ def test_the_anchor_needs_a_loaded_agent(tmp_path):
   cfg = load_config("experiments/smoke.yaml", ["sac.anchor_weight=0.5",
                                                f"train.init_from={SHIPPED}"])
   assert cfg.sac.anchor_weight == 0.5
+
+
+def test_privileged_critics_agent_shapes_include_the_lane_input():
+  """An agent file of privileged critics (`sac.privileged_critics`) has 3 more inputs in
+  each critic's first layer; the shipped agent, whose critics have none, is refused."""
+  cfg = load_config(str(JACKAL))
+  priv = load_config(str(JACKAL), ["sac.privileged_critics=true"])
+  plain_shapes, priv_shapes = network_shapes(cfg), network_shapes(priv)
+  changed = {k for k in plain_shapes if plain_shapes[k] != priv_shapes[k]}
+  assert changed == {"critic/critic0/dense0/kernel", "critic/critic1/dense0/kernel",
+                     "target_critic/critic0/dense0/kernel",
+                     "target_critic/critic1/dense0/kernel"}
+  for k in changed:
+    assert priv_shapes[k][0] == plain_shapes[k][0] + 3
+  with pytest.raises(ConfigError, match="has shape .* the config's networks"):
+    load_agent(str(SHIPPED), priv_shapes)
 
 
 def test_an_agent_of_other_networks_is_refused_in_one_line(tmp_path):
