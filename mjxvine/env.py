@@ -344,7 +344,7 @@ class VineyardEnv(Env):
     return jax.random.uniform(key, (), minval=lo, maxval=hi)
 
   def _observe(self, w: PoolWorld, d, prev_action, key, yaw_ref, noise_factor,
-               faults: robot_faults.RobotFaults | None, pose: dict) -> dict:
+               faults: robot_faults.RobotFaults | None = None, pose: dict | None = None) -> dict:
     cam = robot_faults.mounted_camera(self.cfg.robot, d, self.camera.cam_id, faults)
     ids = self._near_plants.near(w.index, cam.cam_xpos[self.camera.cam_id, :2])
     image = depth_cam.render_depth(self.camera, w.model, cam, self._plants.take(ids, w.index),
