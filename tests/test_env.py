@@ -98,7 +98,7 @@ def test_privileged_critics_observe_the_lane_state_and_its_mirror():
   np.testing.assert_allclose(lane[:, 0], lateral / half, atol=2e-3)
   np.testing.assert_allclose(lane[:, 1], yaw, atol=2e-3)
   np.testing.assert_allclose(lane[:, 2], np.asarray(s.info["dist"]) / 10.0, rtol=1e-5)
-  s2, final_obs = jax.jit(env.step_batch)(s, jp.asarray([[0.5, 0.3]] * N))
+  _, final_obs = jax.jit(env.step_batch)(s, jp.asarray([[0.5, 0.3]] * N))
   assert final_obs["lane"].shape == (N, 3) and not np.allclose(final_obs["lane"], lane)
   mirrored = env.mirror_obs(s.obs)
   np.testing.assert_array_equal(mirrored["lane"], lane * np.array([-1, -1, 1], np.float32))

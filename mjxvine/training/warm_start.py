@@ -50,7 +50,7 @@ def network_shapes(cfg) -> dict[str, tuple]:
   nets = nw.make_networks_from_config(cfg)
   obs = {"depth": jax.ShapeDtypeStruct((1, cfg.camera.height, cfg.camera.width, 1), jp.float32),
          "state": jax.ShapeDtypeStruct((1, 3), jp.float32)}
-  if cfg.sac.privileged_critics:  # the critics' lane-state input (`VineyardEnv.lane_state`)
+  if cfg.sac.privileged_critics:  # the critics' lane-state input (`LaneTable.lane_state`)
     obs["lane"] = jax.ShapeDtypeStruct((1, 3), jp.float32)
   actor, critic = jax.eval_shape(lambda k, o: nw.init_params(nets, k, o),
                                  jax.random.PRNGKey(0), obs)
