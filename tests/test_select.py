@@ -80,10 +80,17 @@ def _scores(world_success: int, noise8: tuple, noise10: tuple, mae) -> dict:
 
 def test_rank_puts_the_bar_first_then_the_lower_mae():
   bar = 0.95
-  every = _scores(20, (3, 3), (3, 3), 0.09)       # drives every run, 9 cm off centre
+  every = _scores(20, (3, 3), (3, 3), 0.05)       # drives every run, 5 cm off centre
   paper_noise = _scores(19, (2, 3), (0, 0), 0.04)  # 19/20 and the paper's noise test
   assert choice.meets_bar(every, bar) and choice.meets_bar(paper_noise, bar)
   assert choice.rank(paper_noise, bar) > choice.rank(every, bar)  # both meet it: MAE
+  # every run driven, but further off centre than the test target allows (or no MAE):
+  # below the bar, and above those that fail runs
+  off_centre = _scores(20, (3, 3), (3, 3), choice.MAE_BAR_M + 0.01)
+  assert not choice.meets_bar(off_centre, bar)
+  assert choice.meets_bar(_scores(20, (3, 3), (3, 3), choice.MAE_BAR_M), bar)
+  assert choice.rank(every, bar) > choice.rank(off_centre, bar)
+  assert choice.rank(off_centre, bar) > choice.rank(_scores(18, (3, 3), (3, 3), 0.01), bar)
   # below the bar: a world at 18/20 (90 %), or the curved noise row short of the paper's at 8
   short = [_scores(18, (3, 3), (3, 3), 0.01), _scores(20, (3, 2), (3, 3), 0.01)]
   for s in short:
