@@ -41,7 +41,8 @@ def test_the_page_has_lever_rows_to_check():
   assert {"n3-seed4", "n3-seed0", "n3-seed1", "n3-seed2", "lane-seed4", "droq-seed0",
           "steer-seed4", "steer-seed2", "pose1-seed0", "n3vmin-seed2", "steerw-seed4",
           "steerw-seed2", "priv-seed4", "priv-seed2", "priv-seed0", "priv-seed1", "priv-seed6",
-          "succ100-seed4"} <= names
+          "succ100-seed4", "recipe70k-seed0", "recipe70k-seed1", "recipe70k-seed2",
+          "recipe70k-seed7"} <= names
 
 
 @pytest.mark.parametrize("name,cells", lever_rows(), ids=lambda v: v if isinstance(v, str) else "")

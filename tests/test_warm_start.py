@@ -46,7 +46,9 @@ def test_the_shipped_agent_file_reproduces_the_shipped_actions():
   cfg = load_config("experiments/jackal.yaml")
   nets = nw.make_networks_from_config(cfg)
   h, w = cfg.camera.height, cfg.camera.width
-  obs = {"depth": jnp.zeros((1, h, w, 1)), "state": jnp.zeros((1, 3))}
+  obs = {"depth": jnp.zeros((1, h, w, 1)), "state": jnp.zeros((1, 3)),
+         "lane": jnp.zeros((1, 3))}  # the critics' lane state (sac.privileged_critics)
+  assert cfg.sac.privileged_critics
   from mjxvine import sac as sac_lib
   anchored = dataclasses.replace(cfg.sac, anchor_weight=1.0)  # keeps the loaded actor too
   learner = sac_lib.init_state(nets, anchored, jax.random.PRNGKey(7), obs)
@@ -75,11 +77,13 @@ def test_the_anchor_needs_a_loaded_agent(tmp_path):
 
 
 def test_privileged_critics_agent_shapes_include_the_lane_input():
-  """An agent file of privileged critics (`sac.privileged_critics`) has 3 more inputs in
-  each critic's first layer; the shipped agent, whose critics have none, is refused."""
-  cfg = load_config(str(JACKAL))
-  priv = load_config(str(JACKAL), ["sac.privileged_critics=true"])
-  plain_shapes, priv_shapes = network_shapes(cfg), network_shapes(priv)
+  """An agent file of privileged critics (`sac.privileged_critics`, the recipe's) has 3 more
+  inputs in each critic's first layer; a config of critics without them refuses the
+  shipped agent."""
+  priv = load_config(str(JACKAL))
+  plain = load_config(str(JACKAL), ["sac.privileged_critics=false"])
+  assert priv.sac.privileged_critics
+  plain_shapes, priv_shapes = network_shapes(plain), network_shapes(priv)
   changed = {k for k in plain_shapes if plain_shapes[k] != priv_shapes[k]}
   assert changed == {"critic/critic0/dense0/kernel", "critic/critic1/dense0/kernel",
                      "target_critic/critic0/dense0/kernel",
@@ -87,7 +91,7 @@ def test_privileged_critics_agent_shapes_include_the_lane_input():
   for k in changed:
     assert priv_shapes[k][0] == plain_shapes[k][0] + 3
   with pytest.raises(ConfigError, match="has shape .* the config's networks"):
-    load_agent(str(SHIPPED), priv_shapes)
+    load_agent(str(SHIPPED), plain_shapes)
 
 
 def test_an_agent_of_other_networks_is_refused_in_one_line(tmp_path):
