@@ -66,6 +66,23 @@ def test_the_profile_by_phase_adds_up_to_the_wall_clock(first_run):
   assert profile["wall_s"] == pytest.approx(wall, rel=0.05)
 
 
+def test_a_fresh_start_evaluation_compiles_its_step_once(caplog):
+  # The trainer's params (placed by its mesh) drive it: its env step compiles once, not
+  # once for the carry of the reset and again for the carry of a step.
+  from mjxvine.evaluation import starts
+  cfg = _cfg(80, "train.eval_starts=3")  # a program of its own: compiled here
+  _, init, _ = programs.compiled_trainer(cfg)
+  ts = init(jax.random.split(jax.random.PRNGKey(0), 1))
+  run = programs.start_evaluator(cfg)
+  params = programs.starts_params(ts.learner.averaged_actor_params, starts.ACTOR)
+  with jax.log_compiles(), caplog.at_level("WARNING"):
+    out = run(params, jax.random.PRNGKey(1))
+  compiled = [r.getMessage() for r in caplog.records
+              if "Finished XLA compilation of jit(step)" in r.getMessage()]
+  assert len(compiled) == 1, compiled
+  assert out == run(params, jax.random.PRNGKey(1))  # and drives the same
+
+
 def test_run_writes_logs_checkpoints_and_curve(first_run):
   run, row = first_run
   rows = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]

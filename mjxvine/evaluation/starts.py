@@ -96,6 +96,10 @@ def make_start_eval(env: VineyardEnv, act: Callable, starts: int, members: int =
         jax.jit(summary)
 
   def run(actor_params, key) -> dict:
+    if jax.device_count() == 1:
+      # Params placed by the trainer's mesh would give the step's outputs another
+      # placement than the reset's, and the step would compile twice (once per placement).
+      actor_params = jax.device_get(actor_params)
     key, k_reset = jax.random.split(key)
     carry = reset_fn(k_reset)
     for t in range(env.cfg.env.max_steps):
