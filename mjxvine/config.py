@@ -57,7 +57,6 @@ class WorldConfig:
   test_length_m: float = _f(24.0, 8.0, 300.0, doc="row length of test worlds (the time "
                             "limit of an episode follows it: max_steps per 24 m)")
   curve_amplitude_m: float = _f(0.7, 0.0, 2.0, doc="lateral wander of curved test rows")
-  trunk_radius_m: float = _f(0.04, 0.01, 0.2)
   trunk_height_m: tuple[float, float] = _f((0.6, 0.8), 0.1, 2.0)
   canopy_width_m: tuple[float, float] = _f((0.3, 0.5), 0.05, 2.0)
   canopy_top_m: tuple[float, float] = _f((1.6, 1.9), 0.5, 4.0)
@@ -86,7 +85,6 @@ class WorldConfig:
                                           "per shoot")
   tuft_density_per_m2: float = _f(0.0, 0.0, 10.0, doc="grass and weed tufts per m^2 of "
                                   "lane floor, seen by the camera, driven over (not classic)")
-  terrain_amplitude_m: float = _f(0.05, 0.0, 0.5, doc="terrain bumps are +- this")
   slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient along the rows (+x), %")
   cross_slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient across the rows, %")
   train_seed: int = _f(0, 0, 2**31 - 1, doc="seed of the first train world of the pool")
@@ -170,8 +168,6 @@ class CameraConfig:
   fovy_deg: float = _f(46.8, 1.0, 170.0)
   max_depth_m: float = _f(5.0, 0.1, 100.0)
   noise_factor: float = _f(1.0, 0.0, 100.0, doc="k in clip(d + k (n1 + n2), 0, max)")
-  noise_sigma_m: float = _f(0.2, 0.0, 5.0, doc="std of the depth-independent term n1")
-  noise_clip_m: float = _f(0.5, 0.0, 5.0, doc="each noise term is clipped to +- this")
 
 
 # The depth sensor's presets (docs/design.md, The depth sensor): every `sensor.*` key a
@@ -234,13 +230,6 @@ class EnvConfig:
                     "waited out)")
   v_max: float = _f(0.5, 0.01, 5.0, doc="linear speed box [v_min, v_max] m/s")
   w_max: float = _f(1.0, 0.01, 10.0, doc="angular speed box [-w_max, w_max] rad/s")
-  heading_weight: float = _f(0.6, 0.0, 1e3)
-  progress_weight: float = _f(35.0, 0.0, 1e4)
-  success_reward: float = _f(1000.0, -1e5, 1e5)
-  collision_reward: float = _f(-500.0, -1e5, 1e5)
-  reverse_reward: float = _f(-500.0, -1e5, 1e5)
-  yaw_limit_deg: float = _f(85.0, 1.0, 180.0)
-  success_radius_m: float = _f(0.4, 0.01, 5.0)
   past_end_m: float = _f(0.0, 0.0, 20.0, doc="0: an episode succeeds at the end of the "
                          "row; > 0: only this far past its end line (m), anywhere "
                          "sideways (`evaluate --past-end` drives into the headland)")
@@ -485,6 +474,11 @@ REMOVED_KEYS = {
     "sac.eps_decay": 0.992, "sac.eps_budget_episodes": 1500.0,
     "train.chunk_loop": "auto", "train.select_world_seed": 100, "train.select_runs": 2,
     "train.select_success_bar": 0.95, "train.select_noise_factors": [8.0, 10.0],
+    "world.trunk_radius_m": 0.04, "world.terrain_amplitude_m": 0.05,
+    "camera.noise_sigma_m": 0.2, "camera.noise_clip_m": 0.5, "env.heading_weight": 0.6,
+    "env.progress_weight": 35.0, "env.success_reward": 1000.0,
+    "env.collision_reward": -500.0, "env.reverse_reward": -500.0,
+    "env.yaw_limit_deg": 85.0, "env.success_radius_m": 0.4,
 }
 MOVED_KEYS = {"sac.conv_impl": "train.conv_impl"}
 

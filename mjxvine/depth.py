@@ -82,6 +82,7 @@ _MINVAL = float(mujoco.mjMINVAL)
 # refinement iterations by default; the paper's bumpy ground (0.1 m) keeps one.
 SLOPED_TERRAIN_M = 0.5
 _BIG = 1e6  # stands for "no limit" in per-primitive parameters (kept finite for arithmetic)
+NOISE_SIGMA_M, NOISE_CLIP_M = 0.2, 0.5  # the paper's noise: std of n1; each term's clip
 _KIND_QUADRIC, _KIND_CYLINDER = 0, 1
 
 
@@ -188,7 +189,7 @@ class DepthCamera:
         tan_x=math.tan(math.radians(cfg.fovx_deg) / 2),
         tan_y=math.tan(math.radians(cfg.fovy_deg) / 2),
         max_depth=cfg.max_depth_m, noise_factor=cfg.noise_factor,
-        noise_sigma=cfg.noise_sigma_m, noise_clip=cfg.noise_clip_m, cam_id=cam_id,
+        noise_sigma=NOISE_SIGMA_M, noise_clip=NOISE_CLIP_M, cam_id=cam_id,
         prim_geom=np.asarray(g, np.int32), prim_kind=np.asarray(kind, np.int32),
         prim_sphere=np.asarray(sphere, bool), prim_offset=np.asarray(offset, np.float32),
         max_prims=min(len(prims), 64 if max_prims is None else int(max_prims)),
@@ -546,7 +547,7 @@ def _noise_params(cfg_or_params: Any) -> tuple[float, float, float, float]:
   """(max_depth, sigma, clip, factor) from a CameraConfig or a DepthCamera."""
   if isinstance(cfg_or_params, CameraConfig):
     c = cfg_or_params
-    return c.max_depth_m, c.noise_sigma_m, c.noise_clip_m, c.noise_factor
+    return c.max_depth_m, NOISE_SIGMA_M, NOISE_CLIP_M, c.noise_factor
   c = cfg_or_params
   return c.max_depth, c.noise_sigma, c.noise_clip, c.noise_factor
 

@@ -19,12 +19,11 @@ of `latency` steps ago, the state's v_prev, w_prev stay the policy's command.
 `step` advances one env by one control step and does not reset it (brax's convention):
 `done` marks the end of an episode, `info["truncation"]` is 1 where it ended by time-out or
 a physics reset (learners bootstrap through those), and `metrics` holds the step's outcome
-flags and its named reward terms ("reward/heading", "reward/progress", "reward/success",
-"reward/collision", "reward/reverse"; they sum to `reward`). `restart(state, new_start)`
+flags and its named reward terms ("reward/<term>" of `REWARD_WEIGHTS`, summing to
+`reward`). `restart(state, new_start)`
 starts the next episode from the same start pose or a new random one (random world, lane,
-point along the lane, direction, jitter); `training_env(cfg)` is the batch of
-auto-resetting envs the trainer uses, a new pose every `env.pose_reset_every` episodes
-(`mjxvine.wrappers.AutoResetBatch`).
+point, direction, jitter); `training_env(cfg)`: the trainer's auto-resetting envs
+(`wrappers.AutoResetBatch`), a new pose every `env.pose_reset_every` episodes.
 """
 
 from __future__ import annotations
@@ -54,7 +53,10 @@ from mjxvine.worlds.build import PARKED_Z
 from mjxvine.worlds import (Vineyard, batch_models, build_models, camera_limits, pool_worlds,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
-REWARD_TERMS = ("heading", "progress", "success", "collision", "reverse")
+# The paper's reward weights and terminations (docs/design.md, Reward and terminations).
+REWARD_WEIGHTS = dict(heading=0.6, progress=35.0, success=1000.0, collision=-500.0, reverse=-500.0)
+YAW_LIMIT_DEG = 85.0  # turned farther than this from the lane's heading: reversed
+SUCCESS_RADIUS_M = 0.4  # this near the end of the row (EoR): success
 MAX_QVEL = 50.0  # beyond this (m/s or rad/s) the physics has exploded
 START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the lane's start
 YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
@@ -133,11 +135,10 @@ class VineyardEnv(Env):
     return "mjx"
 
   # ------------------------------------------------------------------ mirror symmetry
-  # The task is left-right symmetric: mirrored about the robot's forward axis, a vineyard
-  # is another vineyard (plants, terrain and noise are random, the camera sits on the
-  # robot's centre plane with columns symmetric about its optical axis, the reward and the
-  # start jitter are even in lateral offset and yaw). So (mirror_obs(o), mirror_action(a),
-  # r, mirror_obs(o')) is as valid a transition as (o, a, r, o') (`sac.mirror_augment`).
+  # Left-right symmetry: mirrored about the robot's forward axis, a vineyard is another
+  # (random plants, terrain and noise; the camera on the robot's centre plane, its columns
+  # symmetric; reward and start jitter even in lateral offset and yaw), so (mirror_obs(o),
+  # mirror_action(a), r, mirror_obs(o')) is a valid transition (`sac.mirror_augment`).
 
   @staticmethod
   def mirror_obs(obs: dict) -> dict:
@@ -160,8 +161,8 @@ class VineyardEnv(Env):
     return take_world(self.model, self.model_axes, world)
 
   def physics_model(self, world: jax.Array) -> mjx.Model:
-    """The mjx.Model that pool world `world` is simulated with: `world_model` without the
-    plants (`worlds.build_spec`); `pipeline_state` is its mjx.Data."""
+    """`world_model` without the plants (`worlds.build_spec`): what simulates pool world
+    `world`; `pipeline_state` is its mjx.Data."""
     return take_world(self._physics_model, self._physics_axes, world)
 
   # ------------------------------------------------------------------ plants near the robot
@@ -327,7 +328,7 @@ class VineyardEnv(Env):
         truncation=jp.float32(0), outcome=jp.int32(RUNNING), episode_return=jp.float32(0),
         last_return=jp.float32(0), last_outcome=jp.int32(RUNNING), last_length=jp.int32(0))
     metrics = {name: jp.float32(0) for name in OUTCOMES[1:]}
-    metrics.update({REWARD_PREFIX + k: jp.float32(0) for k in REWARD_TERMS})
+    metrics.update({REWARD_PREFIX + k: jp.float32(0) for k in REWARD_WEIGHTS})
     return State(pipeline_state=d, obs=obs, reward=jp.float32(0), done=jp.float32(0),
                  metrics=metrics, info=info)
 
@@ -403,27 +404,27 @@ class VineyardEnv(Env):
       success = ahead > env.past_end_m
       lateral = jp.where(crossed, 0.0, lateral)
     else:
-      success = (dist < env.success_radius_m) | (crossed & (jp.abs(lateral) < half_lane))
+      success = (dist < SUCCESS_RADIUS_M) | (crossed & (jp.abs(lateral) < half_lane))
     collision = self.plant_clearance(pose["world"], xy, yaw) < COLLISION_MARGIN_M
     left_lane = jp.abs(lateral) > half_lane
-    reversed_ = jp.abs(heading_err) > jp.deg2rad(env.yaw_limit_deg)
+    reversed_ = jp.abs(heading_err) > jp.deg2rad(YAW_LIMIT_DEG)
     steps = info["episode_steps"] + 1
     timeout = steps >= self.lanes.steps_limit(pose["world"], pose["lane"])
-    outcome = jp.select(
-        [exploded, success, collision, left_lane, reversed_, timeout],
-        [PHYSICS, SUCCESS, COLLISION, LEFT_LANE, REVERSED, TIMEOUT], RUNNING).astype(jp.int32)
+    outcome = jp.select([exploded, success, collision, left_lane, reversed_, timeout],
+                        [PHYSICS, SUCCESS, COLLISION, LEFT_LANE, REVERSED, TIMEOUT],
+                        RUNNING).astype(jp.int32)
     r_heading = 1.0 - 2.0 * jp.sqrt(jp.abs(phi / jp.pi))
     if env.heading_reward == "speed_weighted":
       forward_speed = d.qvel[:2] @ jp.array([jp.cos(yaw), jp.sin(yaw)])
       r_heading = r_heading * jp.clip(forward_speed / env.v_max, 0.0, 1.0)
     # The named terms (a physics reset earns nothing); the reward is their sum.
     terms = {
-        "heading": env.heading_weight * r_heading,
-        "progress": env.progress_weight * (info["dist"] - dist),
-        "success": jp.where(outcome == SUCCESS, env.success_reward, 0.0),
+        "heading": REWARD_WEIGHTS["heading"] * r_heading,
+        "progress": REWARD_WEIGHTS["progress"] * (info["dist"] - dist),
+        "success": jp.where(outcome == SUCCESS, REWARD_WEIGHTS["success"], 0.0),
         "collision": jp.where((outcome == COLLISION) | (outcome == LEFT_LANE),
-                              env.collision_reward, 0.0),
-        "reverse": jp.where(outcome == REVERSED, env.reverse_reward, 0.0)}
+                              REWARD_WEIGHTS["collision"], 0.0),
+        "reverse": jp.where(outcome == REVERSED, REWARD_WEIGHTS["reverse"], 0.0)}
     terms = {k: jp.where(exploded, 0.0, v).astype(jp.float32) for k, v in terms.items()}
     reward = sum(terms.values())
     done = outcome != RUNNING

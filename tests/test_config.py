@@ -44,7 +44,7 @@ def test_yaml_and_overrides(tmp_path):
     ("world.inter_row_m=[0.8,2.0]", "world.inter_row_m"),
     ("env.physics_dt=0.03", "env.physics_dt"),
     ("sac.gamma=1.5", "sac.gamma"),
-    ("world.terrain_amplitude_m=nan", "world.terrain_amplitude_m"),
+    ("world.slope_pct=nan", "world.slope_pct"),
     ("world.train_wide_gap_rows=5", "world.train_wide_gap_rows"),  # of 4 rows
     ("world.train_wide_gap_plants=[2,6]", "world.train_wide_gap_plants"),
 ])

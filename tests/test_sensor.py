@@ -246,7 +246,7 @@ def test_the_d435_preset_in_a_batch_of_envs():
   depth_camera = types.SimpleNamespace(
       tan_x=math.tan(math.radians(cam.fovx_deg / 2)),
       tan_y=math.tan(math.radians(cam.fovy_deg / 2)), max_depth=cam.max_depth_m,
-      noise_sigma=cam.noise_sigma_m, noise_clip=cam.noise_clip_m,
+      noise_sigma=depth.NOISE_SIGMA_M, noise_clip=depth.NOISE_CLIP_M,
       noise_factor=cam.noise_factor)
   image = jp.asarray(bands((0.1, 1.0, 2.5, 4.9, 5.0), 41, 45)[:, :41])
 

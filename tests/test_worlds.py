@@ -13,6 +13,7 @@ from mujoco import mjx
 from mjxvine.worlds import (ROBOTS, batch_models, build_models, build_spec, generate_world,
                             load_test_world, take_world, terrain_height)
 from mjxvine.worlds.__main__ import main as worlds_main
+from mjxvine.worlds import layout
 from mjxvine.worlds.layout import TEST_LANE_SHAPES
 
 
@@ -51,7 +52,7 @@ def test_ranges(cfg, kind, seed):
   assert np.all((top >= 1.6 - 1e-9) & (top <= 1.9 + 1e-9))
   assert np.all((2 * w.canopy_half[:, :2] >= 0.3 - 1e-9) & (2 * w.canopy_half[:, :2] <= 0.5 + 1e-9))
   # terrain bumps of +- amplitude
-  assert np.abs(w.terrain).max() == pytest.approx(cfg.world.terrain_amplitude_m)
+  assert np.abs(w.terrain).max() == pytest.approx(layout.TERRAIN_AMPLITUDE_M)
   # lanes: the centerline runs between its two rows, ends are the EoRs
   for lane in w.lanes:
     c = lane.centerline

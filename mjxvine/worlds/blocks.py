@@ -22,7 +22,8 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from mjxvine.config import WorldConfig
-from mjxvine.worlds.layout import (CENTERLINE_STEP_M, TERRAIN_CELL_M, TERRAIN_MARGIN_M, Lane,
+from mjxvine.worlds.layout import (CENTERLINE_STEP_M, TERRAIN_CELL_M, TERRAIN_MARGIN_M,
+                                   TRUNK_RADIUS_M, Lane,
                                    Vineyard, WorldFileError, slope_plane, terrain_bumps)
 from mjxvine.worlds.limits import (MAX_PLANTS, MAX_ROW_PLANTS, MAX_ROWS, MAX_SCENERY,
                                    MAX_TERRAIN_CELLS, MIN_PLANT_SPACING_M)
@@ -190,7 +191,7 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
   m = TERRAIN_MARGIN_M
   lo, hi = plant_xy.min(0), plant_xy.max(0)
   extent = (float(lo[0] - m), float(hi[0] + m), float(lo[1] - m), float(hi[1] + m))
-  terrain = terrain_bumps(rng, cfg, extent)
+  terrain = terrain_bumps(rng, extent)
   if slope_pct or cross_slope_pct:
     terrain = terrain + slope_plane(terrain.shape, extent, slope_pct, cross_slope_pct)
   world = Vineyard(
@@ -198,7 +199,7 @@ def vineyard_from_rows(rows: Sequence[np.ndarray], cfg: WorldConfig, *, robot_wi
       length_m=float(max(l.centerline[-1, 0] for l in lanes)),
       row_y0=np.array([r[:, 1].mean() for r in rows]), plant_xy=plant_xy,
       plant_yaw=rng.uniform(-np.pi, np.pi, n), plant_row=plant_row, trunk_height=trunk,
-      trunk_radius=cfg.trunk_radius_m, canopy_half=canopy_half, canopy_z=(top + trunk) / 2,
+      trunk_radius=TRUNK_RADIUS_M, canopy_half=canopy_half, canopy_z=(top + trunk) / 2,
       lanes=tuple(lanes), terrain=terrain, terrain_extent=extent,
       frame={"source": source, "origin_lonlat": None if origin_lonlat is None else
              [float(v) for v in origin_lonlat], "heading_deg": float(np.rad2deg(heading)),

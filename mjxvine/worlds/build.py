@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 
 from mjxvine.config import Config
-from mjxvine.worlds.layout import Vineyard
+from mjxvine.worlds.layout import TERRAIN_AMPLITUDE_M, Vineyard
 from mjxvine.worlds.robots import ROBOTS, add_robot
 from mjxvine.worlds.seasons import SHAPE_TABLES
 
@@ -120,10 +120,10 @@ def _scenery_table(world: Vineyard, kind: str) -> np.ndarray:
                          np.tile(_yaw_quat(1.0), (n, 1))], 1)
 
 
-def terrain_span(world: Vineyard, cfg: Config) -> float:
+def terrain_span(world: Vineyard) -> float:
   """The half-range (m) of `world`'s heightfield: its largest |height| (at least the
-  config's bump amplitude, and 0.1 mm)."""
-  return max(cfg.world.terrain_amplitude_m, float(np.abs(world.terrain).max()), 1e-4)
+  bumps' amplitude, and 0.1 mm)."""
+  return max(TERRAIN_AMPLITUDE_M, float(np.abs(world.terrain).max()), 1e-4)
 
 
 def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
@@ -133,7 +133,7 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
 
   `plant_slots` (default: `plant_slots_for([world])`) fixes the number of plant geom
   pairs, `scenery_slots` (default: `scenery_slots_for([world])`) those of each kind of
-  scenery, and `terrain_span_m` (default `terrain_span(world, cfg)`) the heightfield's
+  scenery, and `terrain_span_m` (default `terrain_span(world)`) the heightfield's
   height range, so that worlds built with the same values batch together. `plants=False`
   leaves the plant and scenery geoms out (the env's physics model: they take part in no
   contact, and MJX would pose every one of them at every physics step).
@@ -160,7 +160,7 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
   # exactly [-amp, amp] (two far corners, in the margin, pinned), so MuJoCo's [0, 1]
   # rescaling of the data is exact and the same for every world of a batch.
   xmin, xmax, ymin, ymax = world.terrain_extent
-  amp = terrain_span(world, cfg) if terrain_span_m is None else terrain_span_m
+  amp = terrain_span(world) if terrain_span_m is None else terrain_span_m
   nrow, ncol = world.terrain.shape
   hfield = spec.add_hfield(name="terrain", nrow=nrow, ncol=ncol,
                            size=[(xmax - xmin) / 2, (ymax - ymin) / 2, 2 * amp, TERRAIN_BASE_M])
@@ -249,7 +249,7 @@ def build_models(worlds: Sequence[Vineyard], cfg: Config,
   """Models of `worlds` with a common number of plant and scenery slots and terrain
   height range, ready for `batch_models` (`plants`: see `build_spec`)."""
   slots, scenery = plant_slots_for(worlds), scenery_slots_for(worlds)
-  span = max(terrain_span(w, cfg) for w in worlds)
+  span = max(terrain_span(w) for w in worlds)
   return [build_model(w, cfg, slots, span, plants, scenery) for w in worlds]
 
 

@@ -24,6 +24,7 @@ from mjxvine.worlds.seasons import SCENERY_FIELDS, SEASONS, SHAPE_TABLES, dress
 
 TEST_LANE_SHAPES = ("straight", "straight", "hybrid", "curved", "curved")
 CENTERLINE_STEP_M = 0.25  # sampling of lane centerlines
+TRUNK_RADIUS_M = 0.04  # every trunk's radius (m)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,17 +176,18 @@ def _varied_offsets(rng: np.random.Generator, num_rows: int, length: float,
 TERRAIN_BUMP_M = 1.0  # grid of the terrain's random bumps
 TERRAIN_CELL_M = 0.25  # heightfield resolution
 TERRAIN_MARGIN_M = 4.0  # terrain beyond the outer plants
+TERRAIN_AMPLITUDE_M = 0.05  # terrain bumps are +- this
 
 
-def terrain_bumps(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndarray:
-  """Heights (m) over `extent`: bumps of +- amplitude on a `TERRAIN_BUMP_M` grid,
+def terrain_bumps(rng: np.random.Generator, extent) -> np.ndarray:
+  """Heights (m) over `extent`: bumps of +- `TERRAIN_AMPLITUDE_M` on a `TERRAIN_BUMP_M` grid,
   bilinearly refined to `TERRAIN_CELL_M` cells."""
   xmin, xmax, ymin, ymax = extent
   ncol = int(round((xmax - xmin) / TERRAIN_CELL_M)) + 1
   nrow = int(round((ymax - ymin) / TERRAIN_CELL_M)) + 1
   bx = int(np.ceil((xmax - xmin) / TERRAIN_BUMP_M)) + 1
   by = int(np.ceil((ymax - ymin) / TERRAIN_BUMP_M)) + 1
-  coarse = rng.uniform(-cfg.terrain_amplitude_m, cfg.terrain_amplitude_m, size=(by, bx))
+  coarse = rng.uniform(-TERRAIN_AMPLITUDE_M, TERRAIN_AMPLITUDE_M, size=(by, bx))
   u = np.linspace(0, (xmax - xmin) / TERRAIN_BUMP_M, ncol)
   v = np.linspace(0, (ymax - ymin) / TERRAIN_BUMP_M, nrow)
   i0 = np.minimum(np.floor(v).astype(int), by - 2)
@@ -198,7 +200,7 @@ def terrain_bumps(rng: np.random.Generator, cfg: WorldConfig, extent) -> np.ndar
   h = c00 * (1 - fv) * (1 - fu) + c01 * (1 - fv) * fu + c10 * fv * (1 - fu) + c11 * fv * fu
   # MuJoCo rescales heightfield data to [0, 1]; pinning two far corners (in the margin,
   # never driven on) to -+amplitude makes that rescaling the identity for every world.
-  h[0, 0], h[-1, -1] = -cfg.terrain_amplitude_m, cfg.terrain_amplitude_m
+  h[0, 0], h[-1, -1] = -TERRAIN_AMPLITUDE_M, TERRAIN_AMPLITUDE_M
   return h
 
 
@@ -292,14 +294,14 @@ def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
   lanes = tuple(Lane(k, shapes[k - 1], k - 1, k, *_centerline(xy, row, k, length))
                 for k in range(1, num_rows))
   extent = world_extent(cfg)
-  terrain = terrain_bumps(rng, cfg, extent)
+  terrain = terrain_bumps(rng, extent)
   if cfg.slope_pct or cfg.cross_slope_pct:
     terrain = terrain + slope_plane(terrain.shape, extent, cfg.slope_pct, cfg.cross_slope_pct)
   classic = Vineyard(
       kind=kind, seed=int(seed), inter_row_m=inter_row, spacing_m=spacing, length_m=length,
       row_y0=row_y0, plant_xy=xy, plant_yaw=plant_yaw[keep],
       plant_row=row, trunk_height=trunk_height[keep],
-      trunk_radius=cfg.trunk_radius_m, canopy_half=canopy_half[keep],
+      trunk_radius=TRUNK_RADIUS_M, canopy_half=canopy_half[keep],
       canopy_z=canopy_z[keep], lanes=lanes, terrain=terrain,
       terrain_extent=extent)
   return dress(classic, cfg)  # (its own random stream: the same layout in every season)
