@@ -53,10 +53,9 @@ from mjxvine.worlds.build import PARKED_Z
 from mjxvine.worlds import (Vineyard, batch_models, build_models, camera_limits, pool_worlds,
                             plant_geom_ids, plant_slots_for, take_world, wheel_speeds)
 
-# The paper's reward weights and terminations (docs/design.md, Reward and terminations).
+# The paper's reward weights, yaw limit (reversed beyond it) and success radius around the EoR
 REWARD_WEIGHTS = dict(heading=0.6, progress=35.0, success=1000.0, collision=-500.0, reverse=-500.0)
-YAW_LIMIT_DEG = 85.0  # turned farther than this from the lane's heading: reversed
-SUCCESS_RADIUS_M = 0.4  # this near the end of the row (EoR): success
+YAW_LIMIT_DEG, SUCCESS_RADIUS_M = 85.0, 0.4  # (docs/design.md, Reward and terminations)
 MAX_QVEL = 50.0  # beyond this (m/s or rad/s) the physics has exploded
 START_ALONG = (0.0, 0.6)  # training starts: this fraction of the row from the lane's start
 YAW_REFERENCE_JITTER_DEG = 20.0  # yaw_reference=start: +- this on the reference in training
