@@ -216,13 +216,15 @@ class SensorConfig:
   quantum_m: float = _f(0.0, 0.0, 0.1, doc="depth step of the output (0.001: millimetres)")
 
 
+PHYSICS_DT_S = 0.02  # the MJX timestep: env.control_dt / this physics steps a control step
+
+
 @dataclasses.dataclass(frozen=True)
 class EnvConfig:
   """Task, reward and termination (docs/design.md, Observation and action; Reward and
   terminations)."""
   num_envs: int = _f(1, 1, 1 << 20)
-  control_dt: float = _f(0.1, 0.01, 1.0, doc="seconds per action")
-  physics_dt: float = _f(0.02, 0.001, 0.1, doc="MJX timestep; control_dt / physics_dt sub-steps")
+  control_dt: float = _f(0.1, 0.02, 1.0, doc="seconds per action, a multiple of PHYSICS_DT_S")
   max_steps: int = _f(700, 1, 100000, doc="episode limit T (a truncation) on rows up "
                       "to 24 m, in proportion on longer ones (`lanes.lane_steps`)")
   v_min: float = _f(0.0, 0.0, 5.0, doc="lowest commanded speed, m/s (0: the paper's box; "
@@ -478,7 +480,7 @@ REMOVED_KEYS = {
     "camera.noise_sigma_m": 0.2, "camera.noise_clip_m": 0.5, "env.heading_weight": 0.6,
     "env.progress_weight": 35.0, "env.success_reward": 1000.0,
     "env.collision_reward": -500.0, "env.reverse_reward": -500.0,
-    "env.yaw_limit_deg": 85.0, "env.success_radius_m": 0.4,
+    "env.yaw_limit_deg": 85.0, "env.success_radius_m": 0.4, "env.physics_dt": 0.02,
 }
 MOVED_KEYS = {"sac.conv_impl": "train.conv_impl"}
 
@@ -552,10 +554,10 @@ def _check_cross_fields(cfg: Config) -> None:
                       "env.train_noise_draw = log_uniform needs a range above 0")
   if cfg.env.v_min >= cfg.env.v_max:
     raise ConfigError(f"env.v_min = {cfg.env.v_min}: must be < env.v_max = {cfg.env.v_max}")
-  steps = cfg.env.control_dt / cfg.env.physics_dt
+  steps = cfg.env.control_dt / PHYSICS_DT_S
   if abs(steps - round(steps)) > 1e-6:
-    raise ConfigError(f"env.physics_dt = {cfg.env.physics_dt}: must divide env.control_dt "
-                      f"= {cfg.env.control_dt}")
+    raise ConfigError(f"env.control_dt = {cfg.env.control_dt}: must be a multiple of the "
+                      f"physics step, {PHYSICS_DT_S} s")
   grid = parse_sweep(cfg.train.sweep)
   members = cfg.train.num_seeds * math.prod(len(v) for v in grid.values())
   if members > MAX_MEMBERS:

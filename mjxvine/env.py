@@ -39,7 +39,7 @@ from mujoco import mjx
 
 from mjxvine import depth as depth_cam, robot_faults, sensor
 from mjxvine.angles import quat_yaw as _yaw, wrap as _wrap
-from mjxvine.config import Config, action_box, depth_input_scale
+from mjxvine.config import PHYSICS_DT_S, Config, action_box, depth_input_scale
 from mjxvine.deploy import MIRROR_ACTION_SIGN, MIRROR_STATE_SIGN
 from mjxvine.driver import pure_pursuit  # noqa: F401 (the reference driver, read from here)
 # Outcome codes and lane geometry are also read from here (starts, evaluate, tests).
@@ -97,7 +97,7 @@ class VineyardEnv(Env):
     self.sample_m = (self.worlds[0].length_m / (self.lanes.centerline.shape[2] - 1)
                      if self.lanes.uniform else CENTERLINE_STEP_M)
     self._trunk_ids, _ = plant_geom_ids(self.mj_model, plant_slots_for(self.worlds))
-    self.substeps = int(round(cfg.env.control_dt / cfg.env.physics_dt))
+    self.substeps = int(round(cfg.env.control_dt / PHYSICS_DT_S))
     low, high = action_box(cfg)
     self.action_low, self.action_high = jp.array(low, jp.float32), jp.array(high, jp.float32)
     # The physics steps the models without plants (no plant takes part in a contact: MJX
@@ -270,7 +270,7 @@ class VineyardEnv(Env):
 
   def physics(self, m: mjx.Model, d: mjx.Data, action: jax.Array) -> mjx.Data:
     """One control step of the physics alone: the wheel speeds of `action` [v, w] (in the
-    box), then `substeps` (control_dt / physics_dt) `mjx.step`s of `m`, a
+    box), then `substeps` (control_dt / `PHYSICS_DT_S`) `mjx.step`s of `m`, a
     `physics_model`."""
     d = d.replace(ctrl=jp.stack(wheel_speeds(action[0], action[1], self.robot)))
     return jax.lax.fori_loop(0, self.substeps, lambda _, x: mjx.step(m, x), d)

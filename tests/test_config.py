@@ -42,7 +42,7 @@ def test_yaml_and_overrides(tmp_path):
     ("robot.name=tank", "robot.name"),
     ("sac.auto_alpha=maybe", "sac.auto_alpha"),
     ("world.inter_row_m=[0.8,2.0]", "world.inter_row_m"),
-    ("env.physics_dt=0.03", "env.physics_dt"),
+    ("env.control_dt=0.05", "env.control_dt"),
     ("sac.gamma=1.5", "sac.gamma"),
     ("world.slope_pct=nan", "world.slope_pct"),
     ("world.train_wide_gap_rows=5", "world.train_wide_gap_rows"),  # of 4 rows

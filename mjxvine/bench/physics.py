@@ -21,7 +21,7 @@ def add_physics_args(p: argparse.ArgumentParser) -> None:
 
 def bench_physics(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   """Env-steps/s of the batched MJX physics alone: `VineyardEnv.physics` per control step
-  (the wheel commands, then control_dt / physics_dt `mjx.step`s), each env in its own
+  (the wheel commands, then control_dt / `config.PHYSICS_DT_S` `mjx.step`s), each env in its own
   pool world."""
   rows = []
   for n in env_counts(args):
@@ -49,7 +49,7 @@ def bench_physics(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict
 
 def mujoco_loop_rate(env, seconds: float = 2.0) -> float:
   """Env-steps/s of the baseline a NumPy user would write: a Python loop over envs calling
-  the C library's `mujoco.mj_step` control_dt / physics_dt times per control step (one
+  the C library's `mujoco.mj_step` control_dt / `config.PHYSICS_DT_S` times per control step (one
   thread, the same world model and wheel commands)."""
   from mjxvine.worlds import wheel_speeds  # pylint: disable=import-outside-toplevel
   model = env.mj_model

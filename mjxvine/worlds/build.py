@@ -20,7 +20,7 @@ from typing import Sequence
 import mujoco
 import numpy as np
 
-from mjxvine.config import Config
+from mjxvine.config import PHYSICS_DT_S, Config
 from mjxvine.worlds.layout import TERRAIN_AMPLITUDE_M, Vineyard
 from mjxvine.worlds.robots import ROBOTS, add_robot
 from mjxvine.worlds.seasons import SHAPE_TABLES
@@ -141,7 +141,7 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
   spec = mujoco.MjSpec()
   # the same for all worlds (names are static); a robot file's name, not its path
   spec.modelname = f"vineyard_{cfg.robot.spec.name}"
-  spec.option.timestep = cfg.env.physics_dt
+  spec.option.timestep = PHYSICS_DT_S
   spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
   spec.option.iterations = SOLVER_ITERATIONS
   spec.option.ls_iterations = SOLVER_LS_ITERATIONS
