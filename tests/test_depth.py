@@ -331,10 +331,9 @@ def test_noise_statistics_and_clipping():
   assert abs(d4.std() - _spec_noise_std(2.0, 4.0)) < 0.02
   np.testing.assert_array_equal(np.asarray(f(jp.float32(0.0), jax.random.key(1))), clean)
   # the depth-proportional term alone (sigma = 0): std 0.25 at 2.5 m, clipped
-  zero = np.asarray(depth.add_noise(jp.full((256, 256), 2.5), jax.random.key(2),
-                                    types.SimpleNamespace(max_depth=cfg.max_depth_m, noise_sigma=0.0,
-                                                          noise_clip=depth.NOISE_CLIP_M,
-                                                          noise_factor=1.0)))
+  no_n1 = types.SimpleNamespace(max_depth=cfg.max_depth_m, noise_sigma=0.0,
+                                noise_clip=depth.NOISE_CLIP_M, noise_factor=1.0)
+  zero = np.asarray(depth.add_noise(jp.full((256, 256), 2.5), jax.random.key(2), no_n1))
   assert abs((zero - 2.5).std() - _spec_noise_std(2.5, 1.0, sigma=0.0)) < 0.005
   # output clipped to [0, max_depth]
   big = np.asarray(depth.add_noise(jp.linspace(0, 5, 4096).reshape(64, 64), jax.random.key(3),
