@@ -148,6 +148,12 @@ def test_a_selection_resumes_from_its_record(selected_run, tmp_path, monkeypatch
   assert again["selected"] == json.loads((run / "selection.json").read_text())["selected"]
   assert (copy / "selected.npz").read_bytes() == (run / "selected.npz").read_bytes()
   assert "selected the policy of" in capsys.readouterr().out
+  # under another sensor (or robot faults) the record's scores no longer hold
+  driven = []
+  monkeypatch.setattr(choice, "score_policy", lambda cfg, path, *a, **k: driven.append(
+      cfg.sensor.preset) or {**_scores(0, (0, 0), (0, 0), None), "episodes": 32})
+  assert choose.main(["--policy", str(copy), "--set", "sensor.preset=d435"]) == 0
+  assert driven == ["d435", "d435"]
 
 
 def test_bad_requests_fail_in_one_line(selected_run, tmp_path, capsys):

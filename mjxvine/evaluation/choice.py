@@ -28,7 +28,7 @@ import numpy as np
 
 from mjxvine.agent_file import agent_path
 from mjxvine.atomic import write_bytes, write_text
-from mjxvine.config import Config
+from mjxvine.config import Config, config_hash, to_dict
 from mjxvine.episodes import OUTCOMES
 from mjxvine.evaluation import paper
 from mjxvine.evaluation.metrics import summarize
@@ -193,13 +193,17 @@ def score_policy(cfg: Config, path: Path, worlds: list, runs: int,
 
 def protocol(cfg: Config) -> dict:
   """What the validation scores depend on besides the policy: a selection.json with other
-  values is scored again."""
+  values is scored again. `conditions`: a hash of the config's world, robot, camera, sensor
+  and env sections (the sensor model and the robot's faults drive with the policy)."""
   t = cfg.train
+  conditions = {k: to_dict(getattr(cfg, k)) for k in ("world", "robot", "camera", "sensor",
+                                                      "env")}
   return {"worlds": [FIRST_WORLD_SEED + i for i in range(t.select_worlds)],
           "runs": RUNS, "noise_factor": cfg.eval.noise_factor,
           "noise_factors": list(NOISE_FACTORS),
           "noise_lanes": list(paper.NOISE_LANES), "noise_runs": paper.NOISE_RUNS,
-          "max_steps": cfg.eval.max_steps, "rollout_seed": 0}
+          "max_steps": cfg.eval.max_steps, "rollout_seed": 0,
+          "conditions": config_hash(conditions)}
 
 
 # ---------------------------------------------------------------------------- the choice
