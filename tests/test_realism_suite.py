@@ -132,15 +132,16 @@ def test_the_results_page_is_its_record():
   assert f"**{done:,} of {runs:,} runs reach the end of their row.**" in " ".join(page.split())
 
 
-def test_the_trained_seed_table_is_its_records():
-  """The realism-trained seed's table: each cell the records' successes per world and
-  their MAE range (beside the agent shipped then, `recipe138k-seed0`)."""
+def _section_table_is_its_records(heading: str, names: tuple[str, ...]) -> int:
+  """Checks each cell of the realism table under `heading` of realism.md against the
+  records `names` (one per column): the successes per world and their MAE range. Returns
+  the cells checked."""
   from pathlib import Path
   root = Path(__file__).resolve().parent.parent / "docs/results"
-  reports = [json.loads((root / f"realism/{name}.json").read_text()) for name in (
-      "realism-seed0-selected-suite", "realism-seed0-last-suite", "recipe138k-seed0-suite")]
+  reports = [json.loads((root / f"realism/{name}.json").read_text()) for name in names]
   page = (root / "realism.md").read_text()
-  page = page[page.index("## A first agent"):page.index("## The env step")]
+  start = page.index(heading)
+  page = page[start:page.index("\n## ", start)]
   checked = 0
   for line in page.splitlines():
     cells = [c.strip() for c in line.strip("|").split("|")]
@@ -155,4 +156,14 @@ def test_the_trained_seed_table_is_its_records():
       assert cell == (", ".join(str(r["success"]) for r in worlds)
                       + f"; MAE {min(maes):.3f}-{max(maes):.3f}"), (cells[0], cell)
       checked += 1
-  assert checked >= 17
+  return checked
+
+
+def test_the_trained_seeds_tables_are_their_records():
+  """The realism-trained seeds' tables: each cell the records' successes per world and
+  their MAE range, beside the agent shipped then."""
+  assert _section_table_is_its_records("## A first agent", (
+      "realism-seed0-selected-suite", "realism-seed0-last-suite",
+      "recipe138k-seed0-suite")) >= 17
+  assert _section_table_is_its_records("## The shipped recipe trained against the field", (
+      "realism70k-seed0-suite", "realism70k-seed1-suite", "shipped-agent-suite")) == 30

@@ -23,8 +23,8 @@ import numpy as np
 
 from mjxvine.config import WorldConfig
 from mjxvine.worlds.layout import (CENTERLINE_STEP_M, TERRAIN_CELL_M, TERRAIN_MARGIN_M,
-                                   TRUNK_RADIUS_M, Lane,
-                                   Vineyard, WorldFileError, slope_plane, terrain_bumps)
+                                   TRUNK_RADIUS_M, Lane, Vineyard, WorldFileError,
+                                   slope_plane, terrain_bumps)
 from mjxvine.worlds.limits import (MAX_PLANTS, MAX_ROW_PLANTS, MAX_ROWS, MAX_SCENERY,
                                    MAX_TERRAIN_CELLS, MIN_PLANT_SPACING_M)
 from mjxvine.worlds.seasons import SHAPE_TABLES, dress
