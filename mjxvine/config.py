@@ -480,7 +480,7 @@ REMOVED_KEYS = {
     "camera.noise_sigma_m": 0.2, "camera.noise_clip_m": 0.5, "env.heading_weight": 0.6,
     "env.progress_weight": 35.0, "env.success_reward": 1000.0,
     "env.collision_reward": -500.0, "env.reverse_reward": -500.0,
-    "env.yaw_limit_deg": 85.0, "env.success_radius_m": 0.4, "env.physics_dt": 0.02,
+    "env.yaw_limit_deg": 85.0, "env.success_radius_m": 0.4, "env.physics_dt": PHYSICS_DT_S,
 }
 MOVED_KEYS = {"sac.conv_impl": "train.conv_impl"}
 

@@ -409,9 +409,9 @@ class VineyardEnv(Env):
     reversed_ = jp.abs(heading_err) > jp.deg2rad(YAW_LIMIT_DEG)
     steps = info["episode_steps"] + 1
     timeout = steps >= self.lanes.steps_limit(pose["world"], pose["lane"])
-    outcome = jp.select([exploded, success, collision, left_lane, reversed_, timeout],
-                        [PHYSICS, SUCCESS, COLLISION, LEFT_LANE, REVERSED, TIMEOUT],
-                        RUNNING).astype(jp.int32)
+    outcome = jp.select(
+        [exploded, success, collision, left_lane, reversed_, timeout],
+        [PHYSICS, SUCCESS, COLLISION, LEFT_LANE, REVERSED, TIMEOUT], RUNNING).astype(jp.int32)
     r_heading = 1.0 - 2.0 * jp.sqrt(jp.abs(phi / jp.pi))
     if env.heading_reward == "speed_weighted":
       forward_speed = d.qvel[:2] @ jp.array([jp.cos(yaw), jp.sin(yaw)])
