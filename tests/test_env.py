@@ -5,12 +5,15 @@ compiled once for the module."""
 
 import jax
 import jax.numpy as jp
+import mujoco
 import numpy as np
 import pytest
+from mujoco import mjx
 
 from mjxvine.config import load_config
 from mjxvine.env import (COLLISION, LEFT_LANE, REVERSED, SUCCESS, TIMEOUT, _wrap,
                          training_env)
+from mjxvine.worlds.build import build_models
 
 N = 4
 
@@ -152,6 +155,41 @@ def test_timeout_is_a_truncation_and_poses_change_every_k_episodes(env, fns):
   np.testing.assert_allclose(starts[0], starts[1], atol=1e-5)
   assert np.all(np.linalg.norm(starts[2] - starts[1], axis=1) > 1e-3)
   np.testing.assert_allclose(starts[2], starts[3], atol=1e-5)
+
+
+def test_a_start_poses_the_robot_and_camera_as_mujoco_does(env, fns):
+  """A reset computes the kinematics alone, not `mjx.forward`: the bodies and the camera
+  stand where MuJoCo's own `mj_forward` puts them for the same qpos (the first image is
+  rendered from them)."""
+  s = _start(fns)
+  models = build_models(env.worlds, env.cfg, plants=False)
+  for i, world in enumerate(np.asarray(s.info["pose"]["world"])):
+    model = models[world]
+    data = mujoco.MjData(model)
+    data.qpos[:] = np.asarray(s.pipeline_state.qpos[i])
+    mujoco.mj_forward(model, data)
+    for field in ("xpos", "xquat", "cam_xpos", "cam_xmat"):
+      want = getattr(data, field)
+      np.testing.assert_allclose(np.reshape(getattr(s.pipeline_state, field)[i], want.shape),
+                                 want, atol=1e-5, err_msg=field)
+
+
+@pytest.mark.slow  # compiles the env step (~45 s, 2 cores); the trainer's tests step it
+def test_a_start_steps_as_one_after_mjx_forward(env, fns):
+  """The physics after a reset is that of a reset through `mjx.forward`: `mjx.step`
+  reads nothing of the start that kinematics alone leaves out (`mjx.forward`, compiled
+  apart, moves the quaternion by a float32 ulp: hence the tolerances)."""
+  _, step = fns
+  s = _start(fns)
+  forward = jax.jit(jax.vmap(lambda w, d: mjx.forward(env.physics_model(w), d)))
+  full = s.replace(pipeline_state=forward(s.info["pose"]["world"], s.pipeline_state))
+  action = jp.tile(jp.array([[0.4, 0.3]], jp.float32), (N, 1))
+  for _ in range(3):
+    s, full = step(s, action)[0], step(full, action)[0]
+  np.testing.assert_allclose(np.asarray(s.pipeline_state.qpos),
+                             np.asarray(full.pipeline_state.qpos), atol=1e-6)
+  np.testing.assert_allclose(np.asarray(s.obs["depth"]), np.asarray(full.obs["depth"]),
+                             atol=2e-4)
 
 
 @pytest.mark.slow  # compiles the env step (~45 s, 2 cores); the trainer's tests step it
