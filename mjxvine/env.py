@@ -21,8 +21,9 @@ of `latency` steps ago, the state's v_prev, w_prev stay the policy's command.
 a physics reset (learners bootstrap through those), and `metrics` holds the step's outcome
 flags and its named reward terms ("reward/<term>" of `REWARD_WEIGHTS`, summing to
 `reward`). `restart(state, new_start)` starts the next episode from the same start pose or
-a new random one (random world, lane, point, direction, jitter); `training_env(cfg)`: the trainer's auto-resetting envs
-(`wrappers.AutoResetBatch`), a new pose every `env.pose_reset_every` episodes.
+a new random one (random world, lane, point, direction, jitter); `training_env(cfg)`: the
+trainer's auto-resetting envs (`wrappers.AutoResetBatch`), a new pose every
+`env.pose_reset_every` episodes.
 """
 
 from __future__ import annotations
@@ -289,8 +290,7 @@ class VineyardEnv(Env):
     return pos[2] + h * size[2]
 
   def _pose_data(self, pose: dict) -> tuple[PoolWorld, mjx.Data]:
-    """The pose's world and its physics data, robot at rest: kinematics and camera pose
-    (not `mjx.forward`: `mjx.step` computes the rest; a reset compiles in half the time)."""
+    """The pose's world and data, robot at rest: kinematics only (`mjx.step` does the rest)."""
     w = PoolWorld(pose["world"], self.physics_model(pose["world"]))
     z = self.terrain_height(w.model, pose["xy"]) + self.robot.wheel_radius + 0.01
     qpos = self._data0.qpos.at[:3].set(jp.array([pose["xy"][0], pose["xy"][1], z]))
