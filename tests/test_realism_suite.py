@@ -166,4 +166,5 @@ def test_the_trained_seeds_tables_are_their_records():
       "realism-seed0-selected-suite", "realism-seed0-last-suite",
       "recipe138k-seed0-suite")) >= 17
   assert _section_table_is_its_records("## The shipped recipe trained against the field", (
-      "realism70k-seed0-suite", "realism70k-seed1-suite", "shipped-agent-suite")) == 30
+      "realism70k-seed0-suite", "realism70k-seed0-50k-suite", "realism70k-seed1-suite",
+      "realism70k-seed2-suite", "realism70k-seed3-suite", "shipped-agent-suite")) == 60
