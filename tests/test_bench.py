@@ -29,6 +29,40 @@ def test_bad_values_are_usage_errors(argv, capsys):
   assert "expected" in capsys.readouterr().err
 
 
+def test_env_against_a_config_is_a_usage_error_when_bad(tmp_path, capsys):
+  """`bench env --against` takes a valid config file, and not with `--block`."""
+  bad = tmp_path / "bad.yaml"
+  bad.write_text("sensor:\n  preset: d999\n")
+  for argv in (["env", "--against", str(tmp_path / "none.yaml")], ["env", "--against", str(bad)],
+               ["env", "--against", "experiments/jackal.yaml", "--block", "2x10"]):
+    with pytest.raises(SystemExit) as e:
+      main(argv)
+    assert e.value.code == 2, argv
+  err = capsys.readouterr().err
+  assert "config file not found" in err and "sensor.preset" in err
+  assert "not allowed with argument" in err
+
+
+@pytest.mark.slow  # two env steps to compile
+def test_env_against_times_both_configs_in_turn(tmp_path):
+  """A tiny `bench env --against`: a row per config, named by its hash, the second (the
+  --config's) with its time over the first's."""
+  from mjxvine.config import config_hash, load_config
+  tiny = ["camera.width=8", "camera.height=6"]
+  base = tmp_path / "base.yaml"
+  base.write_text("camera:\n  width: 8\n  height: 6\n")
+  out = tmp_path / "against.json"
+  assert main(["env", "--set", *tiny[:1], "--set", tiny[1], "--set", "sensor.preset=d435",
+               "--sizes", "2", "--steps", "2", "--rounds", "3", "--against", str(base),
+               "--out", str(out)]) == 0
+  doc = json.loads(out.read_text())
+  first, second = doc["rows"]
+  assert first["config"] == doc["against"] == config_hash(load_config(str(base)))
+  assert second["config"] == doc["config_hash"] != first["config"]
+  assert first["ratio"] == 1.0 and second["ratio"] > 0
+  assert doc["ratio"] == {"2": second["ratio"]}
+
+
 def test_brax_summary_ratios():
   rows = [dict(learner="brax.sac", env_steps=100, train_s=10.0, success=0.2),
           dict(learner="brax.sac", env_steps=200, train_s=20.0, success=0.6),

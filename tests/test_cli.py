@@ -70,7 +70,7 @@ def _value(action: argparse.Action) -> list[str]:
     return []
   if action.choices:
     return [str(next(iter(action.choices)))]
-  for text in ("1", "64x64"):
+  for text in ("1", "64x64", "experiments/smoke.yaml"):
     try:
       (action.type or str)(text)
       return [text]

@@ -2,6 +2,11 @@
 reward, terminations, auto-reset) at the config's image size, per env count, with CPU ms
 and XLA's flops and bytes per env step.
 
+`--against CONFIG` times instead the env step of `--config` and of the YAML file CONFIG
+in turn, and reports the first's time over CONFIG's (`ratio`, the median over rounds): what
+a config's factors cost against another's (e.g. experiments/realism.yaml against
+experiments/jackal.yaml).
+
 `--block ROWSxLENGTH` (e.g. 12x200) times instead the same env step on two worlds, the
 24 m test world and a generated block of ROWS plant rows of LENGTH m (the config's world
 settings otherwise, as a train world of world.train_seed), all envs in the one world,
@@ -43,12 +48,26 @@ def block_size(text: str) -> tuple[int, float]:
 
 def add_env_args(p: argparse.ArgumentParser) -> None:
   add_env_count_args(p)  # --no-baseline too (physics' flag; no effect here)
-  p.add_argument("--block", type=block_size, default=None, metavar="ROWSxLENGTH",
-                 help="time the env step on a generated block of ROWS plant rows x LENGTH m "
-                      "(e.g. 12x200; rows 2-100, length 4-300 m) beside the 24 m test world, "
-                      "in turn, and report the ratio (default --sizes: env.num_envs)")
+  what = p.add_mutually_exclusive_group()  # each times two programs in turn
+  what.add_argument("--block", type=block_size, default=None, metavar="ROWSxLENGTH",
+                    help="time the env step on a generated block of ROWS plant rows x "
+                         "LENGTH m (e.g. 12x200; rows 2-100, length 4-300 m) beside the 24 m "
+                         "test world, in turn, and report the ratio (default --sizes: "
+                         "env.num_envs)")
+  what.add_argument("--against", type=config_file, default=None, metavar="CONFIG",
+                    help="time the env step of CONFIG (a YAML file) in turn with --config's "
+                         "and report --config's time over CONFIG's (default --sizes: "
+                         "env.num_envs)")
   p.add_argument("--rounds", type=positive_int, default=10,
-                 help="with --block: timed calls of each world's program, in turn")
+                 help="with --block or --against: timed calls of each program, in turn")
+
+
+def config_file(path: str) -> config_lib.Config:
+  """The config of the YAML file `path`; a missing or invalid file is a usage error."""
+  try:
+    return config_lib.load_config(path)
+  except config_lib.ConfigError as e:
+    raise argparse.ArgumentTypeError(f"expected a valid config file: {e}") from None
 
 
 def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
@@ -56,6 +75,8 @@ def bench_env(args: argparse.Namespace, cfg: config_lib.Config) -> list[dict]:
   terminations, auto-reset) at the config's image size."""
   if args.block:
     return bench_block(args, cfg)
+  if args.against:
+    return bench_against(args, cfg)
   rows = []
   for n in env_counts(args):
     env, state, action = env_setup(cfg, n)
@@ -92,21 +113,42 @@ def bench_block(args: argparse.Namespace, cfg: config_lib.Config) -> tuple[list[
   names = [f"test {len(worlds[0].lanes) + 1}x{worlds[0].length_m:g}",
            f"block {args.block[0]}x{args.block[1]:g}"]
   for n in env_counts(args) if args.sizes else [cfg.env.num_envs]:
-    calls, infos = [], []
-    for world in worlds:
-      env, state, action = env_setup(cfg, n, [world])
-      fn, info = compile_call(jax.jit(_steps(env, args.steps)), state, action)
-      calls.append((fn, (state, action)))
-      infos.append(info)
-    for name, world, info, t in zip(names, worlds, infos, time_alternating(calls, args.rounds)):
-      count = n * args.steps
-      rows.append(dict(envs=n, world=name, plants=len(world.plant_xy),
-                       image=f"{cfg.camera.height}x{cfg.camera.width}",
-                       env_steps_per_s=count / t["call_s"], compile_s=info["compile_s"],
-                       cpu_ms_per_env_step=1e3 * t["cpu_s"] / count,
-                       flops_per_env_step=per(info["flops"], count),
-                       bytes_per_env_step=per(info["bytes_accessed"], count),
-                       ratio=t["ratio"],
-                       flops_ratio=per(info["flops"], infos[0]["flops"] or None)))
+    timed = _in_turn(args, n, [(cfg, [world]) for world in worlds])
+    for name, world, row in zip(names, worlds, timed):
+      rows.append(dict(envs=n, world=name, plants=len(world.plant_xy), **row))
     ratios[str(n)] = rows[-1]["ratio"]
   return rows, {"block": f"{args.block[0]}x{args.block[1]:g}", "block_ratio": ratios}
+
+
+def bench_against(args: argparse.Namespace, cfg: config_lib.Config
+                  ) -> tuple[list[dict], dict]:
+  """The env step of `--against`'s config and of `cfg`, per env count, in turn: rows of
+  both (the config's hash names each), `cfg`'s with its time and XLA flops over the
+  other's."""
+  rows, ratios = [], {}
+  configs = [args.against, cfg]
+  for n in env_counts(args) if args.sizes else [cfg.env.num_envs]:
+    for c, row in zip(configs, _in_turn(args, n, [(c, None) for c in configs])):
+      rows.append(dict(envs=n, config=config_lib.config_hash(c), **row))
+    ratios[str(n)] = rows[-1]["ratio"]
+  return rows, {"against": config_lib.config_hash(args.against), "ratio": ratios}
+
+
+def _in_turn(args: argparse.Namespace, n: int, setups: list) -> list[dict]:
+  """The env step of each (config, worlds or None: its pool) of `setups` for `n` envs,
+  compiled, then timed in turn (`time_alternating`, `--rounds`): a row each, its `ratio`
+  and `flops_ratio` over the first's."""
+  calls, infos, images = [], [], []
+  for c, worlds in setups:
+    env, state, action = env_setup(c, n, worlds)
+    fn, info = compile_call(jax.jit(_steps(env, args.steps)), state, action)
+    calls.append((fn, (state, action)))
+    infos.append(info)
+    images.append(f"{c.camera.height}x{c.camera.width}")
+  count = n * args.steps
+  return [dict(image=image, env_steps_per_s=count / t["call_s"], compile_s=info["compile_s"],
+               cpu_ms_per_env_step=1e3 * t["cpu_s"] / count,
+               flops_per_env_step=per(info["flops"], count),
+               bytes_per_env_step=per(info["bytes_accessed"], count), ratio=t["ratio"],
+               flops_ratio=per(info["flops"], infos[0]["flops"] or None))
+          for image, info, t in zip(images, infos, time_alternating(calls, args.rounds))]
