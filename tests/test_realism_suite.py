@@ -86,13 +86,15 @@ def test_the_table_names_the_worst_case():
 @pytest.mark.slow  # a compilation per condition
 def test_the_suite_drives_each_condition(tmp_path):
   """The oracle (the true pose) on a short test world under three conditions: every run
-  reaches its row's end, and the report holds each condition and world."""
+  reaches its row's end, the report holds each condition and world, and each condition's
+  line is said as it ends."""
   cfg = load_config(None, ["world.test_length_m=8", "camera.width=16", "camera.height=12",
                            "eval.max_steps=200"])
   from mjxvine.evaluation.rollout import PolicySource
+  said = []
   report = realism.realism_suite(cfg, PolicySource("oracle"), tmp_path,
                                  realism.SuiteRuns(runs=1, worlds=(2,)),
-                                 conditions=("ideal", "latency", "winter"), say=lambda m: None)
+                                 conditions=("ideal", "latency", "winter"), say=said.append)
   doc = json.loads((tmp_path / "report.json").read_text())
   assert doc == json.loads(json.dumps(report))
   assert list(doc["conditions"]) == ["ideal", "latency", "winter"]
@@ -101,6 +103,9 @@ def test_the_suite_drives_each_condition(tmp_path):
     assert r["success"] == r["runs"] == 10, name
     assert np.isfinite(r["mae_m"])
   assert "| latency | 10/10" in (tmp_path / "report.md").read_text()
+  # each condition's result is said as it finishes (a suite takes minutes a condition)
+  mae = doc["conditions"]["winter"]["2"]["mae_m"]
+  assert f"realism suite: winter: world 2 10/10, MAE {mae:.3f}" in said
 
 
 def test_the_results_page_is_its_record():
@@ -161,10 +166,25 @@ def _section_table_is_its_records(heading: str, names: tuple[str, ...]) -> int:
 
 def test_the_trained_seeds_tables_are_their_records():
   """The realism-trained seeds' tables: each cell the records' successes per world and
-  their MAE range, beside the agent shipped then."""
-  assert _section_table_is_its_records("## A first agent", (
-      "realism-seed0-selected-suite", "realism-seed0-last-suite",
-      "recipe138k-seed0-suite")) >= 17
+  their MAE range, beside the shipped agent."""
   assert _section_table_is_its_records("## The shipped recipe trained against the field", (
       "realism70k-seed0-suite", "realism70k-seed0-50k-suite", "realism70k-seed1-suite",
       "realism70k-seed2-suite", "realism70k-seed3-suite", "shipped-agent-suite")) == 60
+  assert _section_table_is_its_records("## The realism recipe", tuple(
+      f"realism-recipe-seed{seed}-suite" for seed in (0, 1, 3, 5))) == 40
+
+
+def test_the_realism_recipes_paper_suite_is_its_records():
+  """realism.md's paper-suite line of the realism recipe's seeds: test world 0's successes
+  and MAE, and the noise test at factor 10, as their records have them."""
+  from pathlib import Path
+  root = Path(__file__).resolve().parent.parent / "docs/results"
+  docs = [json.loads((root / f"realism/realism-recipe-seed{seed}-paper.json").read_text())
+          for seed in (0, 1, 3, 5)]
+  page = " ".join((root / "realism.md").read_text().split())
+  world0 = [d["worlds"]["0"]["overall"] for d in docs]
+  assert ("test world 0 " + ", ".join(str(w["success"]) for w in world0[:-1])
+          + f" and {world0[-1]['success']} of 50 (MAE "
+          + ", ".join(f"{w['mae_m']:.3f}" for w in world0) + " m)") in page
+  at10 = [sum(r["success"] for r in d["noise"]["10"].values()) for d in docs]
+  assert f"at 10 {', '.join(map(str, at10[:-1]))} and {at10[-1]};" in page

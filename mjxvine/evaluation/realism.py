@@ -32,13 +32,13 @@ from mjxvine.worlds.seasons import DRAWN_SEASONS
 
 FIELD_SENSOR = "d435"
 # The robot's faults at the high end of their field ranges (docs/sim-to-real.md): the
-# realism recipe trains on [0, these].
+# realism recipe trains on [0, these], the velocity lag on [0, 0.1] s.
 ROBOT_HIGH = {"latency_steps": (2, 2), "velocity_lag_s": (0.25, 0.25),
               "mount_pitch_deg": (3.0, 3.0), "mount_roll_deg": (2.0, 2.0),
               "mount_height_m": (0.03, 0.03), "yaw_walk_deg": 0.3}
 SEASONS = DRAWN_SEASONS  # spring, summer, winter
-ALL_SEASON = "summer"
-BLOCK_RUNS = 2  # runs of each lane-direction of a vineyard file's block  # the season of "all": posts, a full canopy, shoots and tufts
+ALL_SEASON = "summer"  # the season of "all": posts, a full canopy, shoots and tufts
+BLOCK_RUNS = 2  # runs of each lane-direction of a vineyard file's block
 
 
 TUFTS_PER_M2 = 1.0  # grass and weed tufts on the lane floor of every season
@@ -143,10 +143,19 @@ def realism_suite(cfg: Config, source: PolicySource, out: Path,
         report["conditions"][name][label] = {
             "success": o["success"], "runs": o["runs"], "mae_m": o["mae_m_rows"],
             "worst": _worst(doc["rows"])}
+    say(f"realism suite: {name}: " + "; ".join(
+        f"{_column(label)} {r['success']}/{r['runs']}, MAE "
+        + ("n/a" if r["mae_m"] is None else fmt(r["mae_m"]))
+        for label, r in report["conditions"][name].items()))
   out.mkdir(parents=True, exist_ok=True)
   atomic.write_text(out / "report.json", json.dumps(report))
   atomic.write_text(out / "report.md", report_markdown(report))
   return report
+
+
+def _column(label: str) -> str:
+  """A world's name in the report: "world 2" for a test world's seed, a file's stem as is."""
+  return f"world {label}" if label.isdigit() else label
 
 
 def report_markdown(report: dict) -> str:
@@ -159,7 +168,7 @@ def report_markdown(report: dict) -> str:
            f"world{block}; rollout seed "
            f"{report['seed']}. Each cell: successes / runs, MAE m (the mean of the rows). "
            "Conditions: docs/sim-to-real.md.", "",
-           "| condition | " + " | ".join(f"world {w}" if w.isdigit() else w for w in labels)
+           "| condition | " + " | ".join(map(_column, labels))
            + " | worst case |",
            "|---" * (len(labels) + 2) + "|"]
   for name in names:
