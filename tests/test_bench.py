@@ -48,13 +48,12 @@ def test_env_against_times_both_configs_in_turn(tmp_path):
   """A tiny `bench env --against`: a row per config, named by its hash, the second (the
   --config's) with its time over the first's."""
   from mjxvine.config import config_hash, load_config
-  tiny = ["camera.width=8", "camera.height=6"]
   base = tmp_path / "base.yaml"
   base.write_text("camera:\n  width: 8\n  height: 6\n")
   out = tmp_path / "against.json"
-  assert main(["env", "--set", *tiny[:1], "--set", tiny[1], "--set", "sensor.preset=d435",
-               "--sizes", "2", "--steps", "2", "--rounds", "3", "--against", str(base),
-               "--out", str(out)]) == 0
+  assert main(["env", "--set", "camera.width=8", "--set", "camera.height=6", "--set",
+               "sensor.preset=d435", "--sizes", "2", "--steps", "2", "--rounds", "3",
+               "--against", str(base), "--out", str(out)]) == 0
   doc = json.loads(out.read_text())
   first, second = doc["rows"]
   assert first["config"] == doc["against"] == config_hash(load_config(str(base)))

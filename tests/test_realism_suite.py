@@ -105,7 +105,7 @@ def test_the_suite_drives_each_condition(tmp_path):
   assert "| latency | 10/10" in (tmp_path / "report.md").read_text()
   # each condition's result is said as it finishes (a suite takes minutes a condition)
   mae = doc["conditions"]["winter"]["2"]["mae_m"]
-  assert f"realism suite: winter: world 2 10/10, MAE {mae:.3f}" in said
+  assert f"realism suite: winter: world 2 10/10, {mae:.3f}" in said
 
 
 def test_the_results_page_is_its_record():

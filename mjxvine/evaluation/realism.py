@@ -144,9 +144,7 @@ def realism_suite(cfg: Config, source: PolicySource, out: Path,
             "success": o["success"], "runs": o["runs"], "mae_m": o["mae_m_rows"],
             "worst": _worst(doc["rows"])}
     say(f"realism suite: {name}: " + "; ".join(
-        f"{_column(label)} {r['success']}/{r['runs']}, MAE "
-        + ("n/a" if r["mae_m"] is None else fmt(r["mae_m"]))
-        for label, r in report["conditions"][name].items()))
+        f"{_column(label)} {_cell(r)}" for label, r in report["conditions"][name].items()))
   out.mkdir(parents=True, exist_ok=True)
   atomic.write_text(out / "report.json", json.dumps(report))
   atomic.write_text(out / "report.md", report_markdown(report))
@@ -156,6 +154,11 @@ def realism_suite(cfg: Config, source: PolicySource, out: Path,
 def _column(label: str) -> str:
   """A world's name in the report: "world 2" for a test world's seed, a file's stem as is."""
   return f"world {label}" if label.isdigit() else label
+
+
+def _cell(r: dict) -> str:
+  """A world's result under a condition: "successes/runs, MAE m" ("n/a": none arrived)."""
+  return f"{r['success']}/{r['runs']}, " + ("n/a" if r["mae_m"] is None else fmt(r["mae_m"]))
 
 
 def report_markdown(report: dict) -> str:
@@ -173,8 +176,7 @@ def report_markdown(report: dict) -> str:
            "|---" * (len(labels) + 2) + "|"]
   for name in names:
     per_world = report["conditions"][name]
-    cells = [f"{r['success']}/{r['runs']}, "
-             + ("n/a" if r["mae_m"] is None else fmt(r["mae_m"])) for r in per_world.values()]
+    cells = [_cell(r) for r in per_world.values()]
     named = [(label, r["worst"]) for label, r in per_world.items() if r["worst"]]
     worst = "-"
     if named:
