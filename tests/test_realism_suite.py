@@ -188,3 +188,19 @@ def test_the_realism_recipes_paper_suite_is_its_records():
           + ", ".join(f"{w['mae_m']:.3f}" for w in world0) + " m)") in page
   at10 = [sum(r["success"] for r in d["noise"]["10"].values()) for d in docs]
   assert f"at 10 {', '.join(map(str, at10[:-1]))} and {at10[-1]};" in page
+
+
+def test_the_realism_recipes_validation_curves_are_their_records():
+  """realism.md's validation curve of each realism-recipe seed (every kept policy, by env
+  steps) is its `choose --every` record, and the recipe's choice its last policy."""
+  from pathlib import Path
+  root = Path(__file__).resolve().parent.parent / "docs/results"
+  page = " ".join((root / "realism.md").read_text().split())
+  for seed in (0, 1, 3, 5):
+    every = json.loads((root / f"realism/realism-recipe-seed{seed}-selection-every.json")
+                       .read_text())
+    curve = sorted((c["env_steps"], c["validation"]["success"]) for c in every["candidates"])
+    assert [steps for steps, _ in curve] == [20000, 40000, 60000, 70000], seed
+    assert f"seed {seed} " + ", ".join(str(n) for _, n in curve) in page, seed
+    chosen = json.loads((root / f"realism/realism-recipe-seed{seed}-selection.json").read_text())
+    assert chosen["selected"] == 70000, seed
