@@ -112,7 +112,7 @@ def bench_block(args: argparse.Namespace, cfg: config_lib.Config) -> tuple[list[
   worlds = block_worlds(cfg, *args.block)
   names = [f"test {len(worlds[0].lanes) + 1}x{worlds[0].length_m:g}",
            f"block {args.block[0]}x{args.block[1]:g}"]
-  for n in env_counts(args) if args.sizes else [cfg.env.num_envs]:
+  for n in _paired_counts(args, cfg):
     timed = _in_turn(args, n, [(cfg, [world]) for world in worlds])
     for name, world, row in zip(names, worlds, timed):
       rows.append(dict(envs=n, world=name, plants=len(world.plant_xy), **row))
@@ -127,11 +127,17 @@ def bench_against(args: argparse.Namespace, cfg: config_lib.Config
   other's."""
   rows, ratios = [], {}
   configs = [args.against, cfg]
-  for n in env_counts(args) if args.sizes else [cfg.env.num_envs]:
+  for n in _paired_counts(args, cfg):
     for c, row in zip(configs, _in_turn(args, n, [(c, None) for c in configs])):
       rows.append(dict(envs=n, config=config_lib.config_hash(c), **row))
     ratios[str(n)] = rows[-1]["ratio"]
   return rows, {"against": config_lib.config_hash(args.against), "ratio": ratios}
+
+
+def _paired_counts(args: argparse.Namespace, cfg: config_lib.Config) -> list[int]:
+  """The env counts of a comparison in turn (`--block`, `--against`): `--sizes`, else the
+  config's env.num_envs alone (each count compiles two programs)."""
+  return env_counts(args) if args.sizes else [cfg.env.num_envs]
 
 
 def _in_turn(args: argparse.Namespace, n: int, setups: list) -> list[dict]:
