@@ -43,7 +43,6 @@ class WorldConfig:
   """Procedural vineyards (docs/design.md, World layout). Lengths in metres."""
   inter_row_m: tuple[float, float] = _f((1.5, 2.0), 0.3, 10.0, doc="inter-row distance range")
   spacing_m: tuple[float, float] = _f((0.7, 1.0), 0.2, 5.0, doc="in-row plant spacing range")
-  jitter_frac: float = _f(0.1, 0.0, 0.5, doc="plant position jitter, fraction of spacing (triangular)")
   train_rows: int = _f(4, 2, 12, doc="plant rows in a train world (lanes = rows - 1)")
   train_layout: str = _f("straight", choices=("straight", "varied"),
                          doc="train worlds: straight rows without gaps (the paper), or rows "
@@ -56,7 +55,6 @@ class WorldConfig:
   train_length_m: float = _f(20.0, 4.0, 300.0, doc="row length of train worlds")
   test_length_m: float = _f(24.0, 8.0, 300.0, doc="row length of test worlds (the time "
                             "limit of an episode follows it: max_steps per 24 m)")
-  curve_amplitude_m: float = _f(0.7, 0.0, 2.0, doc="lateral wander of curved test rows")
   trunk_height_m: tuple[float, float] = _f((0.6, 0.8), 0.1, 2.0)
   canopy_width_m: tuple[float, float] = _f((0.3, 0.5), 0.05, 2.0)
   canopy_top_m: tuple[float, float] = _f((1.6, 1.9), 0.5, 4.0)
@@ -87,7 +85,6 @@ class WorldConfig:
                                   "lane floor, seen by the camera, driven over (not classic)")
   slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient along the rows (+x), %")
   cross_slope_pct: float = _f(0.0, -30.0, 30.0, doc="terrain gradient across the rows, %")
-  train_seed: int = _f(0, 0, 2**31 - 1, doc="seed of the first train world of the pool")
   pool_size: int = _f(8, 1, 4096, doc="train worlds in the pool")
   train_files: str = _f("", doc="vineyard files (.geojson, .csv, comma-separated) whose "
                         "blocks join the pool of generated train worlds")
@@ -132,9 +129,6 @@ class RobotConfig:
   line, and `--set KEY=VALUE` of the policy's value keeps it."""
   name: str = _f("jackal", doc="a built-in robot (jackal, husky) or a robot file FILE.yaml "
                  "(relative to the working directory)")
-  wheel_kv: float = _f(1.0, 0.001, 100.0, doc="wheel velocity-servo gain per kg of robot, N m s / rad / kg")
-  wheel_armature: float = _f(0.005, 0.0, 1.0, doc="wheel motor armature per kg of robot, kg m^2 / kg")
-  wheel_friction: float = _f(0.8, 0.05, 5.0)
   # The robot's faults (`mjxvine.robot_faults`, docs/your-robot.md): drawn per episode.
   latency_steps: tuple[int, int] = _f((0, 0), 0, 5, doc="control steps between a command "
                                       "and the wheels acting on it, drawn per episode")
@@ -167,7 +161,6 @@ class CameraConfig:
   fovx_deg: float = _f(60.0, 1.0, 170.0)
   fovy_deg: float = _f(46.8, 1.0, 170.0)
   max_depth_m: float = _f(5.0, 0.1, 100.0)
-  noise_factor: float = _f(1.0, 0.0, 100.0, doc="k in clip(d + k (n1 + n2), 0, max)")
 
 
 # The depth sensor's presets (docs/design.md, The depth sensor): every `sensor.*` key a
@@ -235,7 +228,6 @@ class EnvConfig:
   past_end_m: float = _f(0.0, 0.0, 20.0, doc="0: an episode succeeds at the end of the "
                          "row; > 0: only this far past its end line (m), anywhere "
                          "sideways (`evaluate --past-end` drives into the headland)")
-  pose_reset_every: int = _f(10, 1, 100000, doc="episodes between new start poses")
   start_yaw_jitter_deg: float = _f(10.0, 0.0, 90.0)
   start_lateral_jitter_m: float = _f(0.1, 0.0, 1.0)
   yaw_reference: str = _f("start", choices=("start", "world"),
@@ -248,8 +240,8 @@ class EnvConfig:
   train_noise_factor: tuple[float, float] = _f(
       (0.0, 0.0), 0.0, 100.0, doc="training episodes draw their depth noise factor k "
       "from this range (domain randomisation; as train_noise_draw says); [0, 0]: "
-      "camera.noise_factor always. "
-      "Evaluation always uses camera.noise_factor (or the noise sweep's)")
+      "the paper's factor 1 always. Evaluation uses eval.noise_factor (or the noise "
+      "sweep's)")
   train_noise_draw: str = _f("uniform", choices=("uniform", "log_uniform"),
                              doc="how train_noise_factor's k is drawn: uniformly, or "
                              "log-uniformly (as many episodes in [1, 2] as in [5, 10]: "
@@ -345,10 +337,6 @@ class TrainConfig:
                   "e.g. 'sac.learning_rate=1e-4,1e-3; sac.alpha=0.1,0.2'")
   devices: int = _f(0, 0, 1 << 16, doc="devices the envs, replay and batches are split over "
                     "(0: all; see mjxvine.training.parallel)")
-  max_minutes: float = _f(0.0, 0.0, 1e6, doc="a safety net on the wall-clock: stop "
-                          "(checkpoint, evaluate) after the chunk that passes it, and say so "
-                          "in the last line and RUN/run.json (0: none). The budget is "
-                          "total_env_steps: the same command then gives the same policy")
   eval_every_chunks: int = _f(0, 0, 1 << 20, doc="deterministic evaluation from fresh starts "
                               "of the training pool, forward and reverse apart, every this "
                               "many chunks and at the end; keeps checkpoints/best (0: only at "
@@ -481,6 +469,9 @@ REMOVED_KEYS = {
     "env.progress_weight": 35.0, "env.success_reward": 1000.0,
     "env.collision_reward": -500.0, "env.reverse_reward": -500.0,
     "env.yaw_limit_deg": 85.0, "env.success_radius_m": 0.4, "env.physics_dt": PHYSICS_DT_S,
+    "world.jitter_frac": 0.1, "world.curve_amplitude_m": 0.7, "world.train_seed": 0,
+    "robot.wheel_kv": 1.0, "robot.wheel_armature": 0.005, "robot.wheel_friction": 0.8,
+    "camera.noise_factor": 1.0, "env.pose_reset_every": 10, "train.max_minutes": 0.0,
 }
 MOVED_KEYS = {"sac.conv_impl": "train.conv_impl"}
 

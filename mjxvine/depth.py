@@ -83,6 +83,7 @@ _MINVAL = float(mujoco.mjMINVAL)
 SLOPED_TERRAIN_M = 0.5
 _BIG = 1e6  # stands for "no limit" in per-primitive parameters (kept finite for arithmetic)
 NOISE_SIGMA_M, NOISE_CLIP_M = 0.2, 0.5  # the paper's noise: std of n1; each term's clip
+NOISE_FACTOR = 1.0  # the paper's k in training and on the test world
 _KIND_QUADRIC, _KIND_CYLINDER = 0, 1
 
 
@@ -188,7 +189,7 @@ class DepthCamera:
         height=cfg.height, width=cfg.width,
         tan_x=math.tan(math.radians(cfg.fovx_deg) / 2),
         tan_y=math.tan(math.radians(cfg.fovy_deg) / 2),
-        max_depth=cfg.max_depth_m, noise_factor=cfg.noise_factor,
+        max_depth=cfg.max_depth_m, noise_factor=NOISE_FACTOR,
         noise_sigma=NOISE_SIGMA_M, noise_clip=NOISE_CLIP_M, cam_id=cam_id,
         prim_geom=np.asarray(g, np.int32), prim_kind=np.asarray(kind, np.int32),
         prim_sphere=np.asarray(sphere, bool), prim_offset=np.asarray(offset, np.float32),
@@ -547,7 +548,7 @@ def _noise_params(cfg_or_params: Any) -> tuple[float, float, float, float]:
   """(max_depth, sigma, clip, factor) from a CameraConfig or a DepthCamera."""
   if isinstance(cfg_or_params, CameraConfig):
     c = cfg_or_params
-    return c.max_depth_m, NOISE_SIGMA_M, NOISE_CLIP_M, c.noise_factor
+    return c.max_depth_m, NOISE_SIGMA_M, NOISE_CLIP_M, NOISE_FACTOR
   c = cfg_or_params
   return c.max_depth, c.noise_sigma, c.noise_clip, c.noise_factor
 
@@ -559,8 +560,8 @@ def add_noise(depth: jax.Array, key: jax.Array, cfg_or_params: Any,
 
   `clip(d + k (n1 + n2), 0, max_depth)` with `n1 = clip(N(0, sigma), +-clip)` and
   `n2 = clip(N(0, 1) d / 10, +-clip)`, independent per pixel. `cfg_or_params`: a
-  `CameraConfig` or a `DepthCamera`. `k` is the
-  config's noise factor unless `noise_factor` (may be traced) is given.
+  `CameraConfig` or a `DepthCamera`. `k` is the paper's (`NOISE_FACTOR`; a `DepthCamera`'s
+  own) unless `noise_factor` (may be traced) is given.
   """
   max_depth, sigma, clip, factor = _noise_params(cfg_or_params)
   k = factor if noise_factor is None else noise_factor

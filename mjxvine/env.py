@@ -22,8 +22,7 @@ a physics reset (learners bootstrap through those), and `metrics` holds the step
 flags and its named reward terms ("reward/<term>" of `REWARD_WEIGHTS`, summing to
 `reward`). `restart(state, new_start)` starts the next episode from the same start pose or
 a new random one (random world, lane, point, direction, jitter); `training_env(cfg)`: the
-trainer's auto-resetting envs (`wrappers.AutoResetBatch`), a new pose every
-`env.pose_reset_every` episodes.
+trainer's auto-resetting envs (`wrappers.AutoResetBatch`), a new pose every 10 episodes.
 """
 
 from __future__ import annotations
@@ -75,7 +74,7 @@ class VineyardEnv(Env):
   def __init__(self, cfg: Config, worlds: Sequence[Vineyard] | None = None, *,
                noise_factor: float | None = None):
     """`worlds` defaults to the config's pool of train worlds (`worlds.pool_worlds`:
-    generated ones, seeds train_seed ..., and the blocks of `world.train_files`)."""
+    generated ones, seeds 0 ..., and the blocks of `world.train_files`)."""
     # the blocks of world.train_files close the default pool: `world.train_files_share` of
     # the random starts are theirs
     self.file_worlds = 0
@@ -85,7 +84,7 @@ class VineyardEnv(Env):
     self.cfg = cfg
     self.worlds = list(worlds)
     self.robot = cfg.robot.spec
-    self.noise_factor = cfg.camera.noise_factor if noise_factor is None else noise_factor
+    self.noise_factor = depth_cam.NOISE_FACTOR if noise_factor is None else noise_factor
     models = build_models(self.worlds, cfg)
     self.mj_model = models[0]
     self.model, self.model_axes = batch_models(models)
@@ -446,10 +445,11 @@ class VineyardEnv(Env):
                          done=done.astype(jp.float32), metrics=metrics, info=new_info)
 
 
-def training_env(cfg: Config, worlds: Sequence[Vineyard] | None = None) -> AutoResetBatch:
-  """The batch of auto-resetting vineyard envs the trainer uses (`episodes.TrainEnv`): a
-  new start pose every `env.pose_reset_every` episodes, the same one in between."""
-  return AutoResetBatch(VineyardEnv(cfg, worlds), cfg.env.pose_reset_every)
+def training_env(cfg: Config, worlds: Sequence[Vineyard] | None = None,
+                 pose_reset_every: int = 10) -> AutoResetBatch:
+  """The batch of auto-resetting vineyard envs the trainer uses (`episodes.TrainEnv`): a new
+  start pose every `pose_reset_every` episodes (the paper's 10), the same one in between."""
+  return AutoResetBatch(VineyardEnv(cfg, worlds), pose_reset_every)
 
 
 # ---------------------------------------------------------------------- vector observations

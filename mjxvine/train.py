@@ -58,14 +58,14 @@ def parser() -> argparse.ArgumentParser:
   p.add_argument("--resume", default=None, metavar="RUN_DIR",
                  help="continue an interrupted run from its newest intact checkpoint (else "
                  "its best); --set may change its budget and what runs around the "
-                 "training (train.total_env_steps, train.max_minutes, evaluations, the "
-                 "choice, eval.*), never networks, images, replay or envs")
+                 "training (train.total_env_steps, evaluations, the choice, eval.*), "
+                 "never networks, images, replay or envs")
   p.add_argument("--restart", action="store_true",
                  help="with --resume: when no checkpoint of the run can be restored, start "
                  "it afresh in its directory (its old outputs set aside in previous-<time>/)")
   p.add_argument("--seed", type=key_type("train.seed"), default=None, metavar="N",
                  help="the seed of the run's randomness (network weights, exploration, "
-                 "starts, depth noise; the worlds have world.train_seed); sets train.seed, "
+                 "starts, depth noise; the train worlds have seeds 0 on); sets train.seed, "
                  "as --set train.seed=N does")
   p.add_argument("--init", type=key_type("train.init_from"), default=None, metavar="FILE",
                  help="start from a trained agent: a policy file with its agent file beside "
@@ -190,7 +190,7 @@ def run(cfg: Config, run_dir: Path, args) -> int:
     print(json.dumps({k: row.get(k) for k in (
         "env_steps", "episodes", "return_mean", "success_rate", "sps",
         "best_eval_success_forward", "best_eval_success_reverse", "best_eval_mae_m",
-        "eval_test_success", "eval_test_runs", "stopped", "profile")}))
+        "eval_test_success", "eval_test_runs", "profile")}))
   return 0
 
 

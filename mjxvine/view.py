@@ -46,7 +46,7 @@ def _world(spec: str, cfg):
   if spec == "test":
     return make_world(str(TEST_WORLD_SEED), cfg.world)
   if spec == "train":
-    return generate_world("train", cfg.world.train_seed, cfg.world)
+    return generate_world("train", 0, cfg.world)
   return world_of(spec, cfg)
 
 

@@ -3,7 +3,7 @@
 # not cost the rest:
 #   1. experiments/jackal.yaml (the shipped agent's recipe) from seeds 0, 1 and 2,
 #      vmapped in one process, for STEPS env steps (default 80,000; the recipe trains
-#      138,800) with the backend's own tower; each member chooses its own checkpoint
+#      70,000) with the backend's own tower; each member chooses its own checkpoint
 #      of its 4 best evaluations on the recipe's validation worlds (train.select_worlds:
 #      RUN/selected_members/member<k>.npz), never on a test world;
 #   2. the paper's suite (`evaluate --suite paper`) of each member's chosen actor, the
@@ -34,11 +34,13 @@ if [ "${TINY:-0}" = 1 ]; then
     --set train.eval_every_chunks=2 --set train.eval_starts=2 --set eval.max_steps=40
     --set world.test_length_m=10 --set train.iters_per_chunk=5 --set train.select_worlds=1
     --set train.select_candidates=2"
-  MEMBERS="0"; T_TRAIN=900; T_EVAL=600; MINUTES=10
+  MEMBERS="0"; T_TRAIN=900; T_EVAL=600
 else
   # 4 candidates per member (the recipe scores 8): the choice within the step's timeout
   TRAIN="$TRAIN --set train.total_env_steps=${STEPS:-80000} --set train.select_candidates=4"
-  T_TRAIN=${T_TRAIN:-540}; T_EVAL=${T_EVAL:-180}; MINUTES=${MINUTES:-5}  # the choice after training
+  # a run stopped by the timeout checkpoints (SIGTERM) but makes no choice: the suite
+  # then drives each member's best fresh-start checkpoint
+  T_TRAIN=${T_TRAIN:-540}; T_EVAL=${T_EVAL:-180}
 fi
 pack() {
   tar czf "$OUT/results.tgz" -C "$OUT" --exclude "res/*/tb" --exclude "res/*/checkpoints" res
@@ -46,10 +48,10 @@ pack() {
 }
 
 RUN="$RES/jackal-seeds"
-log "training: python -m mjxvine.train $TRAIN --set train.max_minutes=$MINUTES"
+log "training: python -m mjxvine.train $TRAIN"
 s=$(date +%s)
 XLA_PYTHON_CLIENT_MEM_FRACTION=0.5 timeout $T_TRAIN python -m mjxvine.train $TRAIN \
-  --set train.max_minutes=$MINUTES --out "$RUN" > "$RES/train.log" 2>&1
+  --out "$RUN" > "$RES/train.log" 2>&1
 log "training: exit $? after $(( $(date +%s) - s )) s wall-clock"
 tr '\r' '\n' < "$RES/train.log" | grep -v "^$" | grep -v "step/s" | tail -12 >> "$RES/gpu_check.log"
 cat "$RUN/best_members/scores.json" >> "$RES/gpu_check.log" 2>/dev/null

@@ -21,9 +21,8 @@ N = 4
 @pytest.fixture(scope="module")
 def env():
   cfg = load_config("experiments/smoke.yaml", [
-      "camera.width=16", "camera.height=12", "env.max_steps=20", "env.pose_reset_every=3",
-      "world.pool_size=2"])
-  return training_env(cfg)
+      "camera.width=16", "camera.height=12", "env.max_steps=20", "world.pool_size=2"])
+  return training_env(cfg, pose_reset_every=3)
 
 
 @pytest.fixture(scope="module")
@@ -325,7 +324,7 @@ def test_mirror_image_of_a_vineyard_is_the_flipped_observation():
   from mjxvine.worlds import generate_world
   cfg = load_config("experiments/smoke.yaml", [
       "camera.width=24", "camera.height=16", "world.pool_size=1"])
-  world = generate_world("train", cfg.world.train_seed, cfg.world)
+  world = generate_world("train", 0, cfg.world)
   x0, x1, y0, y1 = world.terrain_extent
   flip_y = np.array([1.0, -1.0])
   mirrored = dataclasses.replace(

@@ -19,11 +19,12 @@ from mjxvine import depth
 from mjxvine.config import load_config
 from mjxvine.env import VineyardEnv, training_env
 from mjxvine.nearby import MARGIN_M, NearbyIndex
-from mjxvine.worlds import generate_world, random_poses
+from mjxvine.worlds import generate_world, layout, random_poses
 
 TINY = ["camera.width=8", "camera.height=6", "env.max_steps=20"]
-# Plants every metre exactly, all of one size: any two windows of the rows hold as many.
-REGULAR = ["world.jitter_frac=0", "world.spacing_m=[1.0, 1.0]", "world.inter_row_m=[2.0, 2.0]",
+# Plants every metre exactly (and no jitter: `layout.JITTER_FRAC` patched), all of one size:
+# any two windows of the rows hold as many.
+REGULAR = ["world.spacing_m=[1.0, 1.0]", "world.inter_row_m=[2.0, 2.0]",
            "world.trunk_height_m=[0.7, 0.7]", "world.canopy_width_m=[0.4, 0.4]",
            "world.canopy_top_m=[1.8, 1.8]", "world.train_rows=4", "world.train_length_m=72"]
 PLANT_FIELDS = ("plant_xy", "plant_yaw", "plant_row", "trunk_height", "canopy_half", "canopy_z")
@@ -71,7 +72,9 @@ def envs():
   """(a regular 4-row world of 72 m, [training envs on it with the plants of x < 30 m
   only, and on it]): the same terrain, lanes and plant density, 2.4 times the plants."""
   cfg = load_config("experiments/smoke.yaml", TINY + REGULAR)
-  world = generate_world("train", 0, cfg.world)
+  with pytest.MonkeyPatch.context() as patch:
+    patch.setattr(layout, "JITTER_FRAC", 0.0)
+    world = generate_world("train", 0, cfg.world)
   keep = world.plant_xy[:, 0] < 30.0
   short = dataclasses.replace(world, **{f: getattr(world, f)[keep] for f in PLANT_FIELDS})
   return world, [training_env(cfg, [w]) for w in (short, world)]

@@ -162,7 +162,7 @@ def _random_yaml(rng: np.random.Generator) -> str:
     depth = int(rng.integers(10, 200))
     return "sac: " + "[" * depth + "1" + "]" * depth + "\n"
   if kind == 2:  # a known key with a surprising scalar
-    key = rng.choice(["train.seed", "train.max_minutes", "sac.auto_alpha", "env.num_envs",
+    key = rng.choice(["train.seed", "eval.noise_factor", "sac.auto_alpha", "env.num_envs",
                       "world.inter_row_m", "camera.width"])
     section, name = str(key).split(".")
     return f"{section}:\n  {name}: {rng.choice(scalars)}\n"

@@ -102,12 +102,12 @@ def test_scalars_read_as_yaml_1_2(tmp_path):
   assert load_config(None, ["train.seed=010"]).train.seed == 10
   assert load_config(None, ["train.seed=0o10"]).train.seed == 8  # octal said as such
   config = tmp_path / "c.yaml"
-  config.write_text("train: {seed: 010, max_minutes: 1e1}\n")
+  config.write_text("train: {seed: 010}\neval: {noise_factor: 1e1}\n")
   cfg = load_config(config)
-  assert (cfg.train.seed, cfg.train.max_minutes) == (10, 10.0)
-  assert "expected a number" in _error(load_config, None, ["train.max_minutes=1:30"])
-  config.write_text("train: {max_minutes: 1:30}\n")
-  assert "train.max_minutes = '1:30': expected a number" in _error(load_config, config)
+  assert (cfg.train.seed, cfg.eval.noise_factor) == (10, 10.0)
+  assert "expected a number" in _error(load_config, None, ["eval.noise_factor=1:30"])
+  config.write_text("eval: {noise_factor: 1:30}\n")
+  assert "eval.noise_factor = '1:30': expected a number" in _error(load_config, config)
   assert "expected true or false" in _error(load_config, None, ["train.video=yes"])
   robot = tmp_path / "r.yaml"
   robot.write_text(ROBOT.read_text() + "\n" + "velocity: {v_max_mps: 0:30}\n")

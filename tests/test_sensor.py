@@ -247,7 +247,7 @@ def test_the_d435_preset_in_a_batch_of_envs():
       tan_x=math.tan(math.radians(cam.fovx_deg / 2)),
       tan_y=math.tan(math.radians(cam.fovy_deg / 2)), max_depth=cam.max_depth_m,
       noise_sigma=depth.NOISE_SIGMA_M, noise_clip=depth.NOISE_CLIP_M,
-      noise_factor=cam.noise_factor)
+      noise_factor=depth.NOISE_FACTOR)
   image = jp.asarray(bands((0.1, 1.0, 2.5, 4.9, 5.0), 41, 45)[:, :41])
 
   @jax.jit

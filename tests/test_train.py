@@ -383,16 +383,3 @@ def test_a_run_continues_from_a_kept_policy_and_its_agent_file(first_run, tmp_pa
   assert e.value.code == 2 and not (tmp_path / "refused").exists()
   err = capsys.readouterr().err.strip()
   assert len(err.splitlines()) == 1 and "bare.sac.npz" in err and "train.init_from" in err
-
-
-def test_a_wall_clock_stop_says_so_in_the_last_line_and_the_record(tmp_path, capsys):
-  run = tmp_path / "timed"
-  assert train_mod.main(["--config", "experiments/smoke.yaml", "--out", str(run),
-                         "--no-eval", *sum((["--set", o] for o in OVERRIDES), []),
-                         "--set", "train.total_env_steps=80",
-                         "--set", "train.max_minutes=0.0001"]) == 0
-  last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-  assert last["stopped"].startswith("train.max_minutes = 0.0001 reached after chunk 1")
-  assert json.loads((run / "run.json").read_text())["stopped"] == last["stopped"]
-  assert {"setup", "collection", "checkpoints"} <= set(last["profile"]["phases_s"])
-

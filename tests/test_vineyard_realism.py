@@ -20,7 +20,7 @@ from mjxvine.config import ConfigError, WorldConfig, load_config
 from mjxvine.worlds import (build_model, build_spec, camera_limits, generate_world,
                             load_test_world, load_world, obstacle_geom_ids, plant_geom_ids,
                             plant_slots_for, random_poses, save_world, terrain_height)
-from mjxvine.worlds import seasons
+from mjxvine.worlds import layout, seasons
 from mjxvine.worlds.build import PARKED_Z, SCENERY
 from mjxvine.worlds.geo import local_to_lonlat, read_vineyard, write_csv, write_geojson
 from mjxvine.worlds.layout import WorldFileError
@@ -196,9 +196,10 @@ def _axis(quat: np.ndarray, column: int) -> np.ndarray:
   return np.array(out)
 
 
-def test_summer_is_a_wall_of_lobes_with_shoots_into_the_lanes():
+def test_summer_is_a_wall_of_lobes_with_shoots_into_the_lanes(monkeypatch):
   # straight rows and one canopy size: a shape's row line and canopy need no owner
-  cfg = config("summer", "world.shoot_reach_m=[0.2, 0.3]", "world.jitter_frac=0",
+  monkeypatch.setattr(layout, "JITTER_FRAC", 0.0)
+  cfg = config("summer", "world.shoot_reach_m=[0.2, 0.3]",
                "world.canopy_width_m=[0.4, 0.4]", "world.canopy_top_m=[1.8, 1.8]")
   world = generate_world("train", 0, cfg.world)
   model = build_model(world, cfg)

@@ -32,7 +32,7 @@ def test_ranges(cfg, kind, seed):
     assert all(l.shape == "straight" for l in w.lanes)
   else:
     assert len(w.lanes) == 5 and tuple(l.shape for l in w.lanes) == TEST_LANE_SHAPES
-  jitter = w.spacing_m * cfg.world.jitter_frac
+  jitter = w.spacing_m * layout.JITTER_FRAC
   for row in rows:
     gaps = _row_spacings(row)
     # Neighbours are a spacing apart up to two jitters; a gap is a multiple of spacing.

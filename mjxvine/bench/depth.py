@@ -118,13 +118,13 @@ def _bench_size(args: argparse.Namespace, c: config_lib.Config,
 
 def _observed(cam, c: config_lib.Config, m, d) -> jax.Array:
   """The image the policy sees: `render_depth` through the config's sensor model
-  (`sensor.observe`, noise factor camera.noise_factor), in one program as in the env
+  (`sensor.observe`, the paper's noise factor), in one program as in the env
   step; its key folded from the pose, so that XLA cannot fold the draws into constants."""
   from mjxvine import depth, sensor  # pylint: disable=import-outside-toplevel
   key = jax.random.fold_in(jax.random.PRNGKey(0),
                            jax.lax.bitcast_convert_type(d.cam_xpos[cam.cam_id, 0], jp.int32))
   return sensor.observe(depth.render_depth(cam, m, d), key, c.camera, c.sensor,
-                        c.camera.noise_factor)
+                        depth.NOISE_FACTOR)
 
 
 def _row(size: str, impl: str, b: int, r: dict) -> dict:

@@ -71,7 +71,7 @@ class ResumeRefused(ValueError):
 RUN_RECORD = "run.json"  # the config the run started with, apart from the editable config.yaml
 # the keys a resume may change: the budget and what runs around the training (evaluations,
 # checkpoint cadence, the choice), never the networks, images, replay, envs or members
-RESUME_FREE = ("train.total_env_steps", "train.max_minutes", "train.checkpoint_every_chunks",
+RESUME_FREE = ("train.total_env_steps", "train.checkpoint_every_chunks",
                "train.eval_every_chunks", "train.eval_starts", "train.video",
                "train.keep_eval_policies", "train.select_worlds", "train.select_candidates",
                "eval.*")
@@ -105,8 +105,8 @@ def run_record(run_dir: Path) -> dict:
 
 
 def record_fact(run_dir: Path, **facts) -> None:
-  """Adds `facts` to RUN_DIR/run.json (e.g. stopped={...} when train.max_minutes ended
-  the run); the recorded config stays as it was."""
+  """Adds `facts` to RUN_DIR/run.json (e.g. profile={...}, where the wall-clock went);
+  the recorded config stays as it was."""
   record = run_record(run_dir)
   if record:
     atomic.write_text(Path(run_dir) / RUN_RECORD, json.dumps({**record, **facts}, indent=1))
@@ -142,9 +142,8 @@ def refuse_changes(run_dir: Path, cfg: Config, base: Config, normalize=lambda c:
     what = ", ".join(f"{k} {value(original, k)!r} -> {value(cfg, k)!r}" for k in changed)
     raise ResumeRefused(f"--resume {run_dir}: the run started with other settings ({what}); "
                         "a resume may change only its budget and what runs around the "
-                        "training (train.total_env_steps, train.max_minutes, the "
-                        "evaluations, the choice, eval.*): restore config.yaml, or train a "
-                        "new run")
+                        "training (train.total_env_steps, the evaluations, the choice, "
+                        "eval.*): restore config.yaml, or train a new run")
 
 
 def set_aside(run_dir: Path) -> Path | None:

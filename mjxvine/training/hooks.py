@@ -192,8 +192,7 @@ class ChunkLog:
 
 class Checkpointing:
   """A checkpoint every `train.checkpoint_every_chunks` chunks and after the last; at the
-  end of a loop that stopped early (a signal, `train.max_minutes`), one of where it
-  stopped."""
+  end of a loop that stopped early (a signal), one of where it stopped."""
   phase = "checkpoints"
 
   def __init__(self, ckpt: Checkpoints, every: int, total_chunks: int, saved: int):

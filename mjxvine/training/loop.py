@@ -234,7 +234,6 @@ class _Run:
   restored_steps: int
   vineyard: bool
   env: Any
-  stopped: str | None = None  # why the loop ended before the budget (train.max_minutes)
   profile: Profile | None = None  # where the run's wall-clock goes
 
 
@@ -356,20 +355,13 @@ def _check_finite(m: dict, ts, chunk_index: int, ckpt: Checkpoints) -> None:
 
 
 def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Callable):
-  """Trains chunks until the budget, `train.max_minutes` or a stop signal; each chunk goes
+  """Trains chunks until the budget or a stop signal; each chunk goes
   through `chunk_hooks` in order (each hook's time to its `phase` of `run.profile`).
   Returns (TrainState, chunks done, signal number or 0)."""
   ts, chunk_index, profile = run.ts, run.chunk_index, run.profile
   one_program = scan_chunks()  # a chunk is one program (scan), else the CPU's host loop
-  t_compile, t_start, signum = None, time.time(), 0
-  run.stopped = None
+  t_compile, signum = None, 0
   while chunk_index < run.total_chunks:
-    if cfg.train.max_minutes and time.time() - t_start > 60 * cfg.train.max_minutes:
-      run.stopped = (f"train.max_minutes = {cfg.train.max_minutes:g} reached after chunk "
-                     f"{chunk_index} ({int(np.max(ts.env_steps))} of "
-                     f"{cfg.train.total_env_steps} env steps)")
-      say(f"{run.stopped}: stopping (a safety net: the budget is train.total_env_steps)")
-      break
     first = t_compile is None
     if first:
       say("compiling the training iteration (the first chunk includes it)...")
@@ -442,7 +434,7 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
       ts, chunk_index, signum = _loop(
           cfg, run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say)
       with profile.phase("checkpoints"):
-        checkpoints.at_end(ts, chunk_index)  # stopped early (a signal, train.max_minutes)
+        checkpoints.at_end(ts, chunk_index)  # stopped early (a signal)
       atomic.set_stop_grace(atomic.STOP_GRACE_S)
       phase[0] = "closing"
       if signum:
@@ -458,10 +450,6 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
     finally:
       with profile.phase("logs"):
         logger.close()
-    if run.stopped:  # said in the last line and recorded with the run
-      log.last_row["stopped"] = run.stopped
-      if primary:
-        record_fact(run_dir, stopped=run.stopped)
     row = _finish(cfg, run_dir, dataclasses.replace(run, ts=ts), evaluation, log.last_row,
                   evaluate_at_end, primary, say)
     row["profile"] = profile.record()

@@ -181,9 +181,7 @@ def build_spec(world: Vineyard, cfg: Config, plant_slots: int | None = None,
 
   robot = cfg.robot.spec
   max_wheel = 1.5 * (cfg.env.v_max + cfg.env.w_max * robot.track_slip * robot.track / 2) / robot.wheel_radius
-  add_robot(spec, robot, kv=cfg.robot.wheel_kv * robot.mass, friction=cfg.robot.wheel_friction,
-            armature=cfg.robot.wheel_armature * robot.mass,
-            fovy_deg=cfg.camera.fovy_deg, max_wheel_speed=max_wheel)
+  add_robot(spec, robot, fovy_deg=cfg.camera.fovy_deg, max_wheel_speed=max_wheel)
   start = world.lanes[0].centerline[2]
   chassis = spec.body("chassis")
   chassis.pos = [start[0], start[1],

@@ -25,6 +25,8 @@ from mjxvine.worlds.seasons import SCENERY_FIELDS, SEASONS, SHAPE_TABLES, dress
 TEST_LANE_SHAPES = ("straight", "straight", "hybrid", "curved", "curved")
 CENTERLINE_STEP_M = 0.25  # sampling of lane centerlines
 TRUNK_RADIUS_M = 0.04  # every trunk's radius (m)
+CURVE_AMPLITUDE_M = 0.7  # lateral wander of curved rows (m)
+JITTER_FRAC = 0.1  # plant position jitter, a fraction of the spacing (triangular)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -259,16 +261,16 @@ def generate_world(kind: str, seed: int, cfg: WorldConfig) -> Vineyard:
   spacing = float(rng.uniform(*cfg.spacing_m))
   varied = kind == "train" and cfg.train_layout == "varied"
   if varied:
-    offsets = _varied_offsets(rng, num_rows, length, cfg.curve_amplitude_m)
+    offsets = _varied_offsets(rng, num_rows, length, CURVE_AMPLITUDE_M)
   else:
-    offsets = _row_offsets(kind, num_rows, length, cfg.curve_amplitude_m)
+    offsets = _row_offsets(kind, num_rows, length, CURVE_AMPLITUDE_M)
   row_y0 = (np.arange(num_rows) - (num_rows - 1) / 2) * inter_row
 
   n = int(np.floor(length / spacing)) + 1
   x_nom = np.arange(n) * spacing
   xs, ys, rows, kidx = [], [], [], []
   for j in range(num_rows):
-    jitter = rng.triangular(-1, 0, 1, size=(n, 2)) * spacing * cfg.jitter_frac
+    jitter = rng.triangular(-1, 0, 1, size=(n, 2)) * spacing * JITTER_FRAC
     x = x_nom + jitter[:, 0]
     xs.append(x)
     ys.append(row_y0[j] + offsets[j](x_nom) + jitter[:, 1])
@@ -331,7 +333,7 @@ def world_extent(cfg: WorldConfig) -> tuple[float, float, float, float]:
   length = max(cfg.train_length_m, cfg.test_length_m)
   half_y = (max(cfg.train_rows, len(TEST_LANE_SHAPES) + 1) - 1) / 2 * cfg.inter_row_m[1]
   m = TERRAIN_MARGIN_M
-  return (-m, length + m, -half_y - m, half_y + 2 * cfg.curve_amplitude_m + m)
+  return (-m, length + m, -half_y - m, half_y + 2 * CURVE_AMPLITUDE_M + m)
 
 
 class WorldFileError(ValueError):

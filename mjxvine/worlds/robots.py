@@ -16,10 +16,15 @@ __all__ = ["ROBOTS", "RobotSpec", "robot_spec", "WHEEL_SIDES", "add_robot", "whe
 
 # Wheel order of the actuators: front-left, rear-left, front-right, rear-right.
 WHEEL_SIDES = (1, 1, -1, -1)  # +1 left, -1 right
+# The wheels' drive, per kg of robot: a velocity servo's gain (N m s / rad / kg) and the
+# motor's armature (kg m^2 / kg); the tyres' sliding friction.
+WHEEL_KV_PER_KG = 1.0
+WHEEL_ARMATURE_PER_KG = 0.005
+WHEEL_FRICTION = 0.8
 
 
-def add_robot(spec: mujoco.MjSpec, robot: RobotSpec, *, kv: float, friction: float, armature: float,
-              fovy_deg: float, max_wheel_speed: float) -> None:
+def add_robot(spec: mujoco.MjSpec, robot: RobotSpec, *, fovy_deg: float,
+              max_wheel_speed: float) -> None:
   """Adds the robot body `chassis` (frame origin at axle height) to `spec`.
 
   Geoms are group 2 and only the wheels collide (with the terrain); the plants never
@@ -40,13 +45,13 @@ def add_robot(spec: mujoco.MjSpec, robot: RobotSpec, *, kv: float, friction: flo
     # Armature: the reflected inertia of the geared motor; it also keeps the stiff
     # velocity servo stable at the coarse physics step.
     wheel.add_joint(name=f"wheel{i}", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0],
-                    armature=armature)
+                    armature=WHEEL_ARMATURE_PER_KG * robot.mass)
     wheel.add_geom(name=f"wheel{i}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[r, 0, 0],
-                   mass=robot.wheel_mass, friction=[friction, 0.005, 0.0001], condim=3,
+                   mass=robot.wheel_mass, friction=[WHEEL_FRICTION, 0.005, 0.0001], condim=3,
                    group=2, rgba=[0.1, 0.1, 0.1, 1])
     act = spec.add_actuator(name=f"wheel{i}", target=f"wheel{i}",
                             trntype=mujoco.mjtTrn.mjTRN_JOINT)
-    act.set_to_velocity(kv=kv)
+    act.set_to_velocity(kv=WHEEL_KV_PER_KG * robot.mass)
     act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
     act.ctrlrange = [-max_wheel_speed, max_wheel_speed]
   # MuJoCo cameras look along -z with +y up: x_cam = -y_body (right), y_cam = +z_body

@@ -84,11 +84,10 @@ def train_files(cfg: WorldConfig) -> list[str]:
 
 
 def pool_worlds(cfg: Config) -> list[Vineyard]:
-  """The train worlds of `cfg`: `world.pool_size` generated ones (seeds `world.train_seed`
-  on), then the blocks of `world.train_files`. With files, every world's terrain is
-  resampled onto one grid shape (`common_terrain_grid`), so that all batch together."""
-  worlds = [generate_world("train", cfg.world.train_seed + i, cfg.world)
-            for i in range(cfg.world.pool_size)]
+  """The train worlds of `cfg`: `world.pool_size` generated ones (seeds 0 on), then the
+  blocks of `world.train_files`. With files, every world's terrain is resampled onto one
+  grid shape (`common_terrain_grid`), so that all batch together."""
+  worlds = [generate_world("train", i, cfg.world) for i in range(cfg.world.pool_size)]
   files = train_files(cfg.world)
   if not files:
     return worlds
