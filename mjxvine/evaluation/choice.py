@@ -41,6 +41,7 @@ RUNS = 2  # runs per lane-direction of a validation world
 NOISE_FACTORS = (8.0, 10.0)  # the noise test's factors on the first validation world
 SUCCESS_BAR = 0.95  # the share of runs a candidate must drive to rank by its offset
 MAE_BAR_M = 0.06  # and the MAE it may keep at most: the test target of test world 0
+ALONE_MAE_M = 0.04  # the last policy is taken alone only this near the centreline
 SUCCESS_CODE = OUTCOMES.index("success")
 
 
@@ -217,9 +218,10 @@ def select(cfg: Config, run_dir: Path, say=print, member: int | None = None,
   "trainer": eval_* values, "validation": `score_policy`}, in the order driven],
   "selected": env steps}.
 
-  The choice is a safeguard: the last policy drives first, and when it meets the bar it
-  is chosen and nothing else drives. Otherwise the others (`candidates`) drive, each
-  stopped as soon as it cannot meet the bar once one has met it (it could not be chosen).
+  The choice is a safeguard: the last policy drives first, and when it meets the bar
+  within `ALONE_MAE_M` of the centreline it is chosen and nothing else drives. Otherwise
+  the others (`candidates`) drive, each stopped as soon as it cannot meet the bar once one
+  has met it (it could not be chosen); the lowest MAE of those that meet it wins.
   `every`: every kept policy drives, in the order of training, none stopped early (the
   validation curve of the run); the choice among them by `rank`."""
   run_dir = Path(run_dir)
@@ -257,8 +259,8 @@ def select(cfg: Config, run_dir: Path, say=print, member: int | None = None,
     say(f"  {steps:>8} env steps: {summary(scores)}"
         + (" (meets the bar)" if meets else ""))
     met = met or meets
-    if meets and not every and steps == chosen[0]:
-      say(f"{who}the last policy meets the bar: no other drives")
+    if meets and not every and steps == chosen[0] and scores["mae_m"] <= ALONE_MAE_M:
+      say(f"{who}the last policy meets the bar within {ALONE_MAE_M} m: no other drives")
       break
   best = max(record["candidates"], key=lambda c: rank(c["validation"], bar))  # first of equals
   record["selected"] = best["env_steps"]
