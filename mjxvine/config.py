@@ -63,8 +63,8 @@ class WorldConfig:
                    doc="what the plants look like: classic (the paper's trunk and canopy "
                    "ellipsoid, nothing else), spring (small lobes on the cordon), summer (a "
                    "wall of canopy lobes, shoots into the lanes), winter (bare trunks and "
-                   "cordons), the last three with trellis posts; mixed: classic, spring, "
-                   "summer and winter in turn by the world's seed (seed mod 4)")
+                   "cordons), the last three with trellis posts; mixed: each world draws "
+                   "spring, summer or winter from its seed")
   post_spacing_m: tuple[float, float] = _f((6.4, 8.5), 0.0, 50.0, doc="line posts of "
                                            "the trellis every this along a row (drawn per "
                                            "world), anchor posts at both row ends; [0, 0]: "

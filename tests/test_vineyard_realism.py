@@ -98,13 +98,9 @@ def test_the_same_seed_gives_the_same_world_and_another_seed_another():
       assert not np.array_equal(getattr(a, name), getattr(c, name)), name
   assert build_spec(a, cfg).to_xml() == build_spec(b, cfg).to_xml()
   mixed = config("mixed").world
-  drawn = [generate_world("train", s, mixed) for s in range(8)]
-  # the four looks in turn, each world as its season's config makes it
-  assert [w.season for w in drawn] == list(seasons.MIXED_SEASONS) * 2
-  for s in (5, 6):
-    alone = generate_world("train", s, config(seasons.MIXED_SEASONS[s % 4]).world)
-    for name in ("post_xy", *seasons.SHAPE_TABLES):
-      np.testing.assert_array_equal(getattr(drawn[s], name), getattr(alone, name), name)
+  drawn = [generate_world("train", s, mixed).season for s in range(12)]
+  assert drawn == [generate_world("train", s, mixed).season for s in range(12)]
+  assert set(drawn) == set(seasons.DRAWN_SEASONS)
 
 
 # --- posts ---------------------------------------------------------------------------------
@@ -379,7 +375,7 @@ def test_a_vineyard_file_sets_its_season_and_post_spacing(tmp_path):
   assert read(plain).season == "classic"
   assert read(plain, config("summer").world).season == "summer"
   mixed = _rows_geojson(tmp_path / "m.geojson", {"plant_spacing_m": 1.0, "season": "mixed"})
-  assert read(mixed).season in seasons.MIXED_SEASONS
+  assert read(mixed).season in seasons.DRAWN_SEASONS
   # a CSV's columns
   text = "row,x_m,y_m,season,post_spacing_m\n" + "".join(
       f"{r},{x},{2.5 * j},{'summer' if j + x == 0 else ''},{'4' if j + x == 0 else ''}\n"

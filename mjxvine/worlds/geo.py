@@ -22,7 +22,7 @@ box); heading_deg: the rows' direction in that frame, degrees counter-clockwise 
 the first lane starts at x = 0, the rows centred on y = 0; within `MAX_OFFSET_M` of that);
 slopes: the terrain's gradient (%) along and across the rows (arguments first, then these,
 else 0). season: the block's look (`mjxvine.worlds.seasons`: classic, spring, summer,
-winter, or mixed, by the seed: `seasons.MIXED_SEASONS`; default: the config's world.season);
+winter, or mixed, drawn from the seed; default: the config's world.season);
 post_spacing_m: its trellis line posts' spacing (m, or a [min, max] range; 0: no posts;
 default: the config's). `write_geojson` writes all three of origin, heading, offset, so a
 world reads back where it was, and the season and a given post spacing.

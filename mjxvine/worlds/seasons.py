@@ -8,8 +8,7 @@ vineyard file may name its own):
 - summer: trunks up to the cordon, a wall of canopy lobes from the cordon to the canopy's
   top, shoots hanging into the lanes;
 - winter: bare trunks up to the cordon and the cordon;
-- mixed: classic, spring, summer and winter in turn by the world's seed (seed mod 4), so
-  that a pool of consecutive seeds holds each alike; a mixed world is its season's world.
+- mixed: each world one of spring, summer and winter, drawn from its seed.
 Every season but classic adds the trellis posts (line posts every `post_spacing_m` along
 a row, anchor posts beyond both ends) and the lane floor's tufts (`tuft_density_per_m2`).
 The trunks of those seasons reach the cordon, at `cordon_height_m` (drawn per row).
@@ -29,8 +28,7 @@ import numpy as np
 from mjxvine.config import WorldConfig
 
 SEASONS = ("classic", "spring", "summer", "winter")  # what a world's plants look like
-DRAWN_SEASONS = ("spring", "summer", "winter")  # the seasons that dress a world
-MIXED_SEASONS = ("classic", *DRAWN_SEASONS)  # those that `mixed` draws from
+DRAWN_SEASONS = ("spring", "summer", "winter")  # those that `mixed` draws from
 SHAPE_TABLES = ("cordons", "lobes", "shoots", "tufts")  # (n, 10) tables of a `Vineyard`
 SCENERY_FIELDS = ("season", "post_xy", "post_height", "post_radius", *SHAPE_TABLES)
 REALISM_KEYS = ("season", "post_spacing_m", "post_height_m", "cordon_height_m",
@@ -76,16 +74,16 @@ def dress(world, cfg: WorldConfig, *, season: str | None = None,
           post_spacing_m: tuple[float, float] | None = None,
           given_trunks: np.ndarray | None = None):
   """`world` (a classic `layout.Vineyard`) dressed for `season` (default `cfg.season`;
-  `mixed` takes `MIXED_SEASONS[seed % 4]`), posts every `post_spacing_m` (range, m; default the config's);
+  `mixed` draws one), posts every `post_spacing_m` (range, m; default the config's);
   `given_trunks` (P,) bool: plants whose trunk height a vineyard file gave (kept as the
   cordon's height there). A classic season, or a world already dressed (a saved one),
   returns `world` itself."""
   season = cfg.season if season is None else season
-  if season == "mixed":  # in turn over consecutive seeds: a pool holds each alike
-    season = MIXED_SEASONS[world.seed % len(MIXED_SEASONS)]
   if season == "classic" or world.season != "classic":
     return world
   rng = np.random.default_rng([world.seed, KIND_STREAM[world.kind], STREAM])
+  if season == "mixed":
+    season = DRAWN_SEASONS[int(rng.integers(len(DRAWN_SEASONS)))]
   if season not in DRAWN_SEASONS:
     raise ValueError(f"season {season!r}: one of {', '.join(SEASONS)} or mixed")
   heading, spacing = row_directions(world)
