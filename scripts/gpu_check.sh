@@ -36,7 +36,7 @@ if [ "${TINY:-0}" = 1 ]; then
     --set train.select_candidates=2"
   MEMBERS="0"; T_TRAIN=900; T_EVAL=600
 else
-  # 4 candidates per member (the recipe scores 8): the choice within the step's timeout
+  # 4 candidates per member, as the recipe: the choice within the step's timeout
   TRAIN="$TRAIN --set train.total_env_steps=${STEPS:-80000} --set train.select_candidates=4"
   # a run stopped by the timeout checkpoints (SIGTERM) but makes no choice: the suite
   # then drives each member's best fresh-start checkpoint

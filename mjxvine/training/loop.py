@@ -354,10 +354,10 @@ def _check_finite(m: dict, ts, chunk_index: int, ckpt: Checkpoints) -> None:
         f"checkpoint is chunk {ckpt.manager.latest_step()} in {ckpt.dir}")
 
 
-def _loop(cfg: Config, run: _Run, chunk_hooks: list, stops: StopSignals, say: Callable):
-  """Trains chunks until the budget or a stop signal; each chunk goes
-  through `chunk_hooks` in order (each hook's time to its `phase` of `run.profile`).
-  Returns (TrainState, chunks done, signal number or 0)."""
+def _loop(run: _Run, chunk_hooks: list, stops: StopSignals, say: Callable):
+  """Trains chunks until the budget or a stop signal; each chunk goes through `chunk_hooks`
+  in order (each hook's time to its `phase` of `run.profile`). Returns (TrainState, chunks
+  done, signal number or 0)."""
   ts, chunk_index, profile = run.ts, run.chunk_index, run.profile
   one_program = scan_chunks()  # a chunk is one program (scan), else the CPU's host loop
   t_compile, signum = None, 0
@@ -432,7 +432,7 @@ def _train(cfg: Config, run_dir: Path, resume: bool, evaluate_at_end: bool, quie
     profile.add("setup", time.perf_counter() - profile.start - profile.total())
     try:
       ts, chunk_index, signum = _loop(
-          cfg, run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say)
+          run, [h for h in (evaluation, log, checkpoints) if h is not None], stops, say)
       with profile.phase("checkpoints"):
         checkpoints.at_end(ts, chunk_index)  # stopped early (a signal)
       atomic.set_stop_grace(atomic.STOP_GRACE_S)
