@@ -81,15 +81,31 @@ def _stereo_std(z: jax.Array, sensor: SensorConfig) -> jax.Array:
                          / (sensor.stereo_focal_px * sensor.stereo_baseline_m))
 
 
+def _step_matrix(n: int) -> jax.Array:
+  """(n, n) float32 D with (D v)[i] = v[i + 1] - v[i] and 0 for the last i."""
+  return jp.asarray(np.eye(n, k=1, dtype=np.float32) - np.diag(
+      np.r_[np.ones(n - 1, np.float32), 0.0]))
+
+
 def _flying(z: jax.Array, measured: jax.Array, u_fly: jax.Array, rate: float) -> jax.Array:
   """`measured` where a pixel on a depth edge of z (the 4-neighbour with the largest step,
   if over EDGE_STEP_M) reads, with probability `rate`, a depth uniform between its own and
   that neighbour's true depth: a mixed pixel. u_fly: (H, W) uniform in (0, 1); where it
-  is below `rate`, u_fly / rate is uniform in (0, 1) again: where between the sides."""
-  pad = jp.pad(z, 1, mode="edge")  # the image's border is no edge
+  is below `rate`, u_fly / rate is uniform in (0, 1) again: where between the sides.
+
+  The steps to the neighbours below and to the right are products with a difference
+  matrix (exact: one subtraction each; the image's border is no edge): a dot makes XLA
+  keep z in memory, where a stencil on it would recompute the whole image for each
+  neighbour inside the sensor's one fused loop (several times the cost of the image)."""
+  hi = jax.lax.Precision.HIGHEST  # (no TF32 on GPUs: the differences stay exact)
+  (h, w), zero = z.shape, jp.zeros((), z.dtype)
+  down = jp.matmul(_step_matrix(h), z, precision=hi)  # z[i + 1, j] - z[i, j]
+  right = jp.matmul(z, _step_matrix(w).T, precision=hi)  # z[i, j + 1] - z[i, j]
+  up = -jp.pad(down[:-1], ((1, 0), (0, 0)), constant_values=zero)
+  left = -jp.pad(right[:, :-1], ((0, 0), (1, 0)), constant_values=zero)
   step = jp.zeros_like(z)
-  for neighbour in (pad[:-2, 1:-1], pad[2:, 1:-1], pad[1:-1, :-2], pad[1:-1, 2:]):
-    step = jp.where(jp.abs(neighbour - z) > jp.abs(step), neighbour - z, step)
+  for neighbour_step in (up, down, left, right):
+    step = jp.where(jp.abs(neighbour_step) > jp.abs(step), neighbour_step, step)
   fly = (jp.abs(step) > EDGE_STEP_M) & (u_fly < rate)
   return jp.where(fly, z + (u_fly / rate) * step, measured)
 

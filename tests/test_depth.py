@@ -292,6 +292,16 @@ def test_culling_same_as_no_culling(synth):
   assert changed > 0
 
 
+def test_tiles_keep_their_nearest_overlaps_in_order():
+  """The running count that gives each tile its slots is the cumulative sum of its
+  overlaps, for K of every shape (blocks of about sqrt(K), the last one short)."""
+  rng = np.random.default_rng(0)
+  for k in (1, 5, 64, 144, 150):
+    over = rng.random((7, k)) < 0.3
+    np.testing.assert_array_equal(np.asarray(depth._running_count(jp.asarray(over))),
+                                  np.cumsum(over, axis=1))
+
+
 def test_unsupported_geoms_raise():
   spec = mujoco.MjSpec()
   spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[1, 1, 1], group=1)

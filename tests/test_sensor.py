@@ -238,6 +238,28 @@ def test_flying_pixels_lie_between_the_sides_of_an_edge(images):
   assert abs(values.mean() - 3.6) < 4 * 0.8 / math.sqrt(12 * values.size)
 
 
+def test_flying_pixels_take_the_largest_step_to_a_neighbour():
+  """Against the definition: each pixel's step to its 4-neighbours (up, down, left,
+  right; the first of equal size; none across the border), on edges of every direction
+  (the same pixels fly; their depths to float32 rounding, which XLA may fuse)."""
+  rng = np.random.default_rng(3)
+  z = rng.choice(np.float32([0.5, 1.0, 2.7, 4.9]), (13, 17)) + rng.uniform(
+      0, 0.2, (13, 17)).astype(np.float32)
+  u = rng.uniform(0, 1, z.shape).astype(np.float32)
+  measured = z + np.float32(0.01)
+  rate = 0.6
+  got = np.asarray(jax.jit(sensor._flying, static_argnums=3)(z, measured, u, rate))
+  pad = np.pad(z, 1, mode="edge")
+  step = np.zeros_like(z)
+  for neighbour in (pad[:-2, 1:-1], pad[2:, 1:-1], pad[1:-1, :-2], pad[1:-1, 2:]):
+    step = np.where(np.abs(neighbour - z) > np.abs(step), neighbour - z, step)
+  fly = (np.abs(step) > sensor.EDGE_STEP_M) & (u < rate)
+  want = np.where(fly, z + (u / np.float32(rate)) * step, measured)
+  assert 0.1 < fly.mean() < 0.9  # both kinds of pixel
+  np.testing.assert_array_equal(got != measured, fly)
+  np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
+
+
 # ------------------------------------------------------------------ the whole chain
 
 def test_the_d435_preset_in_a_batch_of_envs():
