@@ -269,9 +269,8 @@ def camera_limits(worlds: Sequence[Vineyard], camera=None) -> dict[str, int]:
   camera primitives per m^2 of the densest world (`VIEW_M2`; a plant's m^2 is its
   spacing times the inter-row distance), scaled by the ground the view of `camera` (a
   CameraConfig; default the paper's) covers, at least `CLASSIC_MAX_PRIMS`, and
-  `CANOPY_TILE_SLOTS` primitives a tile where a world has canopy lobes. (Measured at
-  41x41 on a 2-core CPU: a pool of summer worlds with 2 tufts a m^2, max_prims 160 and 12
-  a tile, costs 1.19 times the classic env step; max_prims 256 cost 1.4 times.)"""
+  `CANOPY_TILE_SLOTS` primitives a tile where a world has canopy lobes (what they cost:
+  docs/results/realism.md, The env step with everything on)."""
   if all(w.season == "classic" for w in worlds):
     return {}
   def per_m2(w):
