@@ -21,16 +21,17 @@ lower MAE) through a validation protocol:
   noise test's rows and runs).
 
 One batched rollout per candidate (`rollout.rollout_cases`, rollout seed 0: the same
-cases and keys for every candidate). When the last policy meets the bar within 0.04 m
-of the centreline it is chosen and no other drives; once a candidate has met the bar, a
-later one stops as soon as it cannot (`stopped_early` in the record). The candidates that
-meet the bar (at least 95 % of the validation worlds' runs, an MAE of at most 0.06 m, and
-the noise rows at least as often as the paper's) rank first, by the lower MAE (the mean
-over the validation worlds of each world's mean of rows); the others after them, by their
-successes, then the MAE (`choice.rank`). RUN/selection.json records every candidate's scores and the choice,
-and is written after each candidate, so an interrupted selection resumes; RUN/selected.npz
-is the chosen policy, which a run dir's "best" policy means from then on
-(`checkpoints.selected_policy`: `evaluate --policy RUN`, `export --policy RUN`).
+cases and keys for every candidate). When the last policy meets the bar within 0.04 m of
+the centreline it is chosen and no other drives; once a candidate has met the bar, a
+later one stops as soon as it cannot (`stopped_early` in the record). The candidates
+that meet the bar (at least 95 % of the validation worlds' runs, an MAE of at most 0.06
+m, and the noise rows at least as often as the paper's) rank first, by the lower MAE
+(the mean over the validation worlds of each world's mean of rows); the others after
+them, by their successes, then the MAE (`choice.rank`). RUN/selection.json records every
+candidate's scores and the choice, and is written after each candidate, so an
+interrupted selection resumes; RUN/selected.npz is the chosen policy, which a run dir's
+"best" policy means from then on (`checkpoints.selected_policy`: `evaluate --policy
+RUN`, `export --policy RUN`).
 Of a run of several members (`--num-seeds`, sweeps) each member chooses its own, from its own
 evaluations and kept policies: RUN/selected_members/member<k>.npz and selection<k>.json
 (`evaluate --policy RUN --member K`).
